@@ -1,0 +1,29 @@
+"""hedger-jax: HEDGER (Smart & Kaelbling, ICML 2000) as pure, jittable, vmappable JAX functions.
+
+Core API::
+
+    config = HedgerConfig(state_dim=2, discrete_actions=((-1.,), (0.,), (1.,)), ...)
+    memory = init_memory(config)
+    value, known, n = predict(config, memory, state, action)        # Algorithm 1
+    action, value, known = greedy_action(config, memory, state, key)
+    memory, info = train_episode(config, memory, episode)           # Algorithm 2, reversed
+
+Importing this package is light: it never imports brax.
+"""
+from hedger_jax.config import HedgerConfig
+from hedger_jax.greedy import greedy_action, greedy_value, maximise_1d
+from hedger_jax.memory import (FLAG_FULL, FLAG_NONFINITE, Memory, MemoryFullError,
+                               NonFiniteValueError, add_points, init_memory, memory_check,
+                               select_neighbours, stored_points)
+from hedger_jax.predict import Prediction, predict, predict_detailed
+from hedger_jax.train import TrainInfo, Transition, train_episode, train_step
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "HedgerConfig", "Memory", "MemoryFullError", "NonFiniteValueError", "FLAG_FULL",
+    "FLAG_NONFINITE", "init_memory", "add_points", "memory_check", "select_neighbours",
+    "stored_points", "Prediction", "predict", "predict_detailed", "greedy_action",
+    "greedy_value", "maximise_1d", "Transition", "TrainInfo", "train_step", "train_episode",
+    "__version__",
+]

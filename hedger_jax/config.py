@@ -1,0 +1,221 @@
+"""Static configuration of a HEDGER learner.
+
+``HedgerConfig`` is a frozen, hashable dataclass: pass it as a static argument to ``jax.jit``
+(or close over it). Everything that changes during learning lives in pytrees (``Memory``),
+never here. Every field is validated on construction; a bad value raises ``ValueError``
+naming the field.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, Optional, Tuple
+
+FULL_POLICIES = ("error", "overwrite_oldest")
+
+
+def _tuple_of_floats(name: str, value: Any, length: int) -> Tuple[float, ...]:
+    try:
+        out = tuple(float(v) for v in value)
+    except TypeError:
+        out = (float(value),) * length
+    if len(out) != length:
+        raise ValueError(f"{name}: expected {length} values, got {len(out)}")
+    if not all(math.isfinite(v) for v in out):
+        raise ValueError(f"{name}: values must be finite, got {out}")
+    return out
+
+
+@dataclasses.dataclass(frozen=True)
+class HedgerConfig:
+    """All static settings of HEDGER (Smart & Kaelbling 2000, Algorithms 1 and 2).
+
+    Shapes: S = ``state_dim``, A = ``action_dim``, d = S + A (``dim``).
+
+    Input scaling: a query is ``z = (concat(state, action) - input_offset) * input_scale``
+    (each a length-d tuple; default 0 and 1) so that no dimension dominates the Euclidean
+    distance. ``HedgerConfig.for_env`` scales observations to [0, 1] from the environment's
+    bounds and multiplies actions by ``action_scale``.
+
+    Prediction: neighbours are the stored points within ``k_thresh`` of the query (default
+    ``bandwidth * sqrt(ln(1/min_weight))``: the distance where the Gaussian weight
+    ``exp(-d^2/h^2)`` falls to ``min_weight``), at most ``max_neighbours`` (the nearest).
+    Fewer than ``k_min`` (default d + 1, the number of local-linear parameters) or a query
+    outside the independent-variable hull (``use_ivh``) gives ``default_value`` ("don't know").
+
+    Training: ``alpha``/``gamma`` of Q-learning; ``region_update`` moves every neighbour
+    towards the new value by its kernel weight (Algorithm 2 lines 7-8).
+
+    Actions: ``discrete_actions`` (a tuple of length-A tuples) or, when ``None``, the box
+    [``action_low``, ``action_high``] searched by ``greedy_samples`` evenly spaced samples and
+    at most ``greedy_iters`` quadratic-fit refinements stopping at ``greedy_tol``.
+
+    Memory: ``capacity`` preallocated points; when full, ``full_policy="error"`` drops the new
+    point, sets a flag and ``memory_check`` raises ``MemoryFullError`` on the host (stored data
+    is never corrupted); ``"overwrite_oldest"`` replaces the oldest point (a ring buffer).
+
+    Numerics: ``ridge`` is a relative ridge added to the equilibrated normal equations;
+    ``ivh_tol`` a relative tolerance on the hull test (so a stored point is inside its own hull
+    despite float32 round-off).
+    """
+
+    state_dim: int
+    action_dim: int = 1
+    input_offset: Optional[Tuple[float, ...]] = None
+    input_scale: Optional[Tuple[float, ...]] = None
+    capacity: int = 20_000
+    bandwidth: float = 0.015
+    k_thresh: Optional[float] = None
+    min_weight: float = 0.01
+    k_min: Optional[int] = None
+    max_neighbours: int = 32
+    default_value: float = 0.0
+    alpha: float = 0.8
+    gamma: float = 0.8
+    use_ivh: bool = True
+    region_update: bool = True
+    discrete_actions: Optional[Tuple[Tuple[float, ...], ...]] = None
+    action_low: Tuple[float, ...] = (-1.0,)
+    action_high: Tuple[float, ...] = (1.0,)
+    greedy_samples: int = 11
+    greedy_iters: int = 8
+    greedy_tol: float = 1e-3
+    full_policy: str = "error"
+    ridge: float = 1e-6
+    ivh_tol: float = 1e-3
+
+    def __post_init__(self):
+        set_ = lambda name, value: object.__setattr__(self, name, value)  # noqa: E731
+        for name in ("state_dim", "action_dim", "capacity", "max_neighbours",
+                     "greedy_samples", "greedy_iters"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or int(value) != value:
+                raise ValueError(f"{name}: must be an integer, got {value!r}")
+            set_(name, int(value))
+        if self.state_dim < 1:
+            raise ValueError(f"state_dim: must be >= 1, got {self.state_dim}")
+        if self.action_dim < 1:
+            raise ValueError(f"action_dim: must be >= 1, got {self.action_dim}")
+        if self.capacity < 1:
+            raise ValueError(f"capacity: must be >= 1, got {self.capacity}")
+        d = self.dim
+        set_("input_offset", _tuple_of_floats("input_offset", 0.0 if self.input_offset is None
+                                              else self.input_offset, d))
+        set_("input_scale", _tuple_of_floats("input_scale", 1.0 if self.input_scale is None
+                                             else self.input_scale, d))
+        if any(s <= 0 for s in self.input_scale):
+            raise ValueError(f"input_scale: every entry must be > 0, got {self.input_scale}")
+        if not (math.isfinite(self.bandwidth) and self.bandwidth > 0):
+            raise ValueError(f"bandwidth: must be a finite number > 0, got {self.bandwidth}")
+        if not (0.0 < self.min_weight < 1.0):
+            raise ValueError(f"min_weight: must be in (0, 1), got {self.min_weight}")
+        if self.k_thresh is None:
+            set_("k_thresh", float(self.bandwidth * math.sqrt(math.log(1.0 / self.min_weight))))
+        if not (math.isfinite(self.k_thresh) and self.k_thresh > 0):
+            raise ValueError(f"k_thresh: must be a finite number > 0, got {self.k_thresh}")
+        set_("k_thresh", float(self.k_thresh))
+        if self.k_min is None:
+            set_("k_min", d + 1)
+        if isinstance(self.k_min, bool) or int(self.k_min) != self.k_min:
+            raise ValueError(f"k_min: must be an integer, got {self.k_min!r}")
+        set_("k_min", int(self.k_min))
+        if self.k_min < d + 1:
+            raise ValueError(f"k_min: must be >= the number of regression parameters "
+                             f"(dim + 1 = {d + 1}), got {self.k_min}")
+        if self.max_neighbours < self.k_min:
+            raise ValueError(f"max_neighbours: must be >= k_min ({self.k_min}), "
+                             f"got {self.max_neighbours}")
+        for name in ("alpha", "gamma"):
+            value = float(getattr(self, name))
+            if not (0.0 <= value <= 1.0):
+                raise ValueError(f"{name}: must be in [0, 1], got {value}")
+            set_(name, value)
+        if not math.isfinite(self.default_value):
+            raise ValueError(f"default_value: must be finite, got {self.default_value}")
+        set_("default_value", float(self.default_value))
+        set_("action_low", _tuple_of_floats("action_low", self.action_low, self.action_dim))
+        set_("action_high", _tuple_of_floats("action_high", self.action_high, self.action_dim))
+        if any(lo >= hi for lo, hi in zip(self.action_low, self.action_high)):
+            raise ValueError(f"action_low/action_high: need low < high, got "
+                             f"{self.action_low} / {self.action_high}")
+        if self.discrete_actions is not None:
+            try:
+                acts = tuple(tuple(float(x) for x in (a if hasattr(a, "__len__") else (a,)))
+                             for a in self.discrete_actions)
+            except TypeError as err:
+                raise ValueError(f"discrete_actions: not a sequence of actions ({err})") from None
+            if len(acts) < 1 or any(len(a) != self.action_dim for a in acts):
+                raise ValueError(f"discrete_actions: need >= 1 actions of length "
+                                 f"action_dim={self.action_dim}, got {acts}")
+            if not all(math.isfinite(x) for a in acts for x in a):
+                raise ValueError("discrete_actions: values must be finite")
+            set_("discrete_actions", acts)
+        if self.greedy_samples < 3:
+            raise ValueError(f"greedy_samples: must be >= 3, got {self.greedy_samples}")
+        if self.greedy_iters < 0:
+            raise ValueError(f"greedy_iters: must be >= 0, got {self.greedy_iters}")
+        if not (self.greedy_tol > 0):
+            raise ValueError(f"greedy_tol: must be > 0, got {self.greedy_tol}")
+        if self.full_policy not in FULL_POLICIES:
+            raise ValueError(f"full_policy: must be one of {FULL_POLICIES}, got {self.full_policy!r}")
+        if not (0.0 < self.ridge < 1.0):
+            raise ValueError(f"ridge: must be in (0, 1), got {self.ridge}")
+        if not (0.0 <= self.ivh_tol < 1.0):
+            raise ValueError(f"ivh_tol: must be in [0, 1), got {self.ivh_tol}")
+        for name in ("use_ivh", "region_update"):
+            set_(name, bool(getattr(self, name)))
+        if self.discrete_actions is None and self.action_dim != 1:
+            raise ValueError("action_dim: the continuous greedy search supports action_dim == 1; "
+                             "use discrete_actions for multi-dimensional actions")
+
+    # ------------------------------------------------------------------ derived
+    @property
+    def dim(self) -> int:
+        """Dimension d of a query (state_dim + action_dim)."""
+        return self.state_dim + self.action_dim
+
+    @property
+    def n_params(self) -> int:
+        """Parameters of the local linear model (intercept + d slopes)."""
+        return self.dim + 1
+
+    @property
+    def is_discrete(self) -> bool:
+        return self.discrete_actions is not None
+
+    def replace(self, **changes: Any) -> "HedgerConfig":
+        """A copy with some fields changed (re-validated; derived fields recomputed)."""
+        if "bandwidth" in changes or "min_weight" in changes:
+            changes.setdefault("k_thresh", None)
+        if "state_dim" in changes or "action_dim" in changes:
+            changes.setdefault("k_min", None)
+        return dataclasses.replace(self, **changes)
+
+    @classmethod
+    def for_env(cls, env: Any, params: Any = None, *, action_scale: float = 1.0,
+                **overrides: Any) -> "HedgerConfig":
+        """A config for a functional environment (see ``envs.base``).
+
+        Observations are scaled to [0, 1] by ``env.obs_bounds(params)``; actions are
+        multiplied by ``action_scale`` (raw by default, as in the paper's discrete set
+        {-1, 0, 1}). The action space (discrete set or box) comes from ``env.action_space``.
+        """
+        import numpy as np
+
+        if params is None:
+            params = env.default_params()
+        low, high = (np.asarray(b, dtype=np.float64) for b in env.obs_bounds(params))
+        space = env.action_space
+        a_dim = space.action_dim
+        a_scale = np.broadcast_to(np.asarray(action_scale, dtype=np.float64), (a_dim,))
+        kwargs = dict(
+            state_dim=int(low.shape[0]),
+            action_dim=a_dim,
+            input_offset=tuple(low.tolist()) + (0.0,) * a_dim,
+            input_scale=tuple((1.0 / (high - low)).tolist()) + tuple(a_scale.tolist()),
+            discrete_actions=space.values,
+            action_low=space.low,
+            action_high=space.high,
+        )
+        kwargs.update(overrides)
+        return cls(**kwargs)

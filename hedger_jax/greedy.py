@@ -1,0 +1,159 @@
+"""Greedy action search: max_a Q(s, a) over a discrete set or a continuous interval.
+
+Continuous actions use the paper's search (after Brent 1973): ``greedy_samples`` evenly spaced
+actions over the bounds, then successive parabolic interpolation through the best sample and
+its two neighbours, sampling at the fitted maximum, until two successive maxima are closer
+than ``greedy_tol`` or ``greedy_iters`` refinements were made (a fixed-length ``lax.scan``,
+so it jits and vmaps). The answer is always the best *evaluated* sample, so it never leaves
+the bounds and is never worse than the initial grid.
+
+"Don't know" handling: an unknown candidate counts as ``default_value`` (as a table
+initialised with that value would); if every evaluated candidate is unknown the greedy policy
+acts at random (``known`` is False).
+"""
+from __future__ import annotations
+
+from typing import Callable, Tuple
+
+import jax
+import jax.numpy as jnp
+
+from hedger_jax.config import HedgerConfig
+from hedger_jax.memory import Memory
+from hedger_jax.predict import predict
+
+_NEG = -jnp.inf
+
+
+def _bracket(xs: jax.Array, fs: jax.Array, filled: jax.Array):
+    """Best filled sample and its nearest filled neighbours on each side (fallback: same side).
+
+    xs, fs, filled (m,) -> three (x, f) pairs with x_l < x_b < x_r where possible.
+    """
+    fs_m = jnp.where(filled, fs, _NEG)
+    b = jnp.argmax(fs_m)
+    xb = xs[b]
+    dist = jnp.abs(xs - xb)
+    others = filled & (jnp.arange(xs.shape[0]) != b) & (dist > 0)
+    left = others & (xs < xb)
+    right = others & (xs > xb)
+    big = jnp.inf
+    i_l = jnp.argmin(jnp.where(left, dist, big))
+    i_r = jnp.argmin(jnp.where(right, dist, big))
+    has_l, has_r = jnp.any(left), jnp.any(right)
+    # Second-nearest on the available side, for a best sample at the boundary.
+    i_r2 = jnp.argmin(jnp.where(right & (jnp.arange(xs.shape[0]) != i_r), dist, big))
+    i_l2 = jnp.argmin(jnp.where(left & (jnp.arange(xs.shape[0]) != i_l), dist, big))
+    i0 = jnp.where(has_l, i_l, jnp.where(has_r, b, i_l))
+    i1 = jnp.where(has_l & has_r, b, jnp.where(has_l, i_l, i_r))
+    i2 = jnp.where(has_r, jnp.where(has_l, i_r, i_r2), b)
+    # When only the left side exists: (l2, l, b); only the right side: (b, r, r2).
+    i0 = jnp.where(~has_r & has_l, i_l2, i0)
+    return (xs[i0], fs_m[i0]), (xs[i1], fs_m[i1]), (xs[i2], fs_m[i2]), b
+
+
+def _parabola_vertex(p0, p1, p2):
+    """Vertex of the parabola through three points and whether it is a maximum."""
+    (x0, f0), (x1, f1), (x2, f2) = p0, p1, p2
+    d01 = jnp.where(x1 != x0, (f1 - f0) / (x1 - x0), 0.0)
+    d12 = jnp.where(x2 != x1, (f2 - f1) / (x2 - x1), 0.0)
+    c2 = jnp.where(x2 != x0, (d12 - d01) / (x2 - x0), 0.0)
+    c1 = d01 - c2 * (x0 + x1)
+    concave = (c2 < 0) & jnp.isfinite(c1) & jnp.isfinite(c2)
+    vertex = jnp.where(concave, -c1 / (2.0 * jnp.where(concave, c2, -1.0)), x1)
+    return vertex, concave
+
+
+def search_1d(f: Callable[[jax.Array], Tuple[jax.Array, jax.Array]], low: float, high: float,
+              n_samples: int, iters: int, tol: float):
+    """Maximise f over [low, high]; f: x () -> (value (), known ()).
+
+    Returns (x_best (), f_best (), any_known ()): the best evaluated sample.
+    """
+    n_total = n_samples + iters
+    grid = jnp.linspace(low, high, n_samples, dtype=jnp.float32)
+    f0, k0 = jax.vmap(f)(grid)
+    xs = jnp.zeros((n_total,), jnp.float32).at[:n_samples].set(grid)
+    fs = jnp.full((n_total,), _NEG, jnp.float32).at[:n_samples].set(f0)
+    filled = jnp.arange(n_total) < n_samples
+    any_known = jnp.any(k0)
+
+    def body(carry, i):
+        xs, fs, filled, prev, done, any_known = carry
+        p0, p1, p2, b = _bracket(xs, fs, filled)
+        vertex, concave = _parabola_vertex(p0, p1, p2)
+        vertex = jnp.clip(vertex, p0[0], p2[0])
+        vertex = jnp.clip(vertex, low, high)
+        active = ~done & concave
+        fv, kv = f(vertex)
+        slot = n_samples + i
+        xs = xs.at[slot].set(vertex)
+        fs = fs.at[slot].set(jnp.where(active, fv, _NEG))
+        filled = filled.at[slot].set(active)
+        any_known = any_known | (active & kv)
+        done = done | ~concave | (jnp.abs(vertex - prev) < tol)
+        return (xs, fs, filled, vertex, done, any_known), None
+
+    init = (xs, fs, filled, jnp.float32(jnp.nan), jnp.zeros((), bool), any_known)
+    (xs, fs, filled, _, _, any_known), _ = jax.lax.scan(body, init, jnp.arange(iters))
+    best = jnp.argmax(jnp.where(filled, fs, _NEG))
+    return xs[best], fs[best], any_known
+
+
+def maximise_1d(f: Callable[[jax.Array], jax.Array], low: float, high: float,
+                n_samples: int = 11, iters: int = 8, tol: float = 1e-3):
+    """Maximise a scalar function f: x () -> () over [low, high] -> (x_best (), f_best ())."""
+    x, fx, _ = search_1d(lambda x: (f(x), jnp.ones((), bool)), low, high, n_samples, iters, tol)
+    return x, fx
+
+
+def _discrete_values(config: HedgerConfig, memory: Memory, state: jax.Array):
+    actions = jnp.asarray(config.discrete_actions, jnp.float32)          # (n, A)
+    values, known, _ = jax.vmap(lambda a: predict(config, memory, state, a))(actions)
+    return actions, values, known
+
+
+def _continuous_search(config: HedgerConfig, memory: Memory, state: jax.Array):
+    def f(a):
+        v, k, _ = predict(config, memory, state, a[None])
+        return v, k
+
+    return search_1d(f, config.action_low[0], config.action_high[0], config.greedy_samples,
+                     config.greedy_iters, config.greedy_tol)
+
+
+def greedy_value(config: HedgerConfig, memory: Memory, state: jax.Array):
+    """max_a Q(state, a) as used by training: state (S,) -> (value (), known ()).
+
+    Deterministic (no key). Unknown candidates count as ``default_value``; ``known`` says
+    whether any candidate was known.
+    """
+    if config.is_discrete:
+        _, values, known = _discrete_values(config, memory, state)
+        return jnp.max(values), jnp.any(known)
+    _, value, known = _continuous_search(config, memory, state)
+    return value, known
+
+
+def greedy_action(config: HedgerConfig, memory: Memory, state: jax.Array, key: jax.Array):
+    """The greedy action: state (S,), key -> (action (A,), value (), known ()).
+
+    Ties among the best discrete actions are broken at random; when nothing is known the
+    action is uniformly random (from the set, or in the box) and ``known`` is False.
+    """
+    k_tie, k_rand = jax.random.split(key)
+    if config.is_discrete:
+        actions, values, known = _discrete_values(config, memory, state)
+        n = actions.shape[0]
+        ties = values >= jnp.max(values)
+        pick = jnp.argmax(jnp.where(ties, jax.random.uniform(k_tie, (n,)), -1.0))
+        rand = jax.random.randint(k_rand, (), 0, n)
+        any_known = jnp.any(known)
+        idx = jnp.where(any_known, pick, rand)
+        return actions[idx], values[idx], any_known
+    x, value, any_known = _continuous_search(config, memory, state)
+    low = jnp.asarray(config.action_low, jnp.float32)
+    high = jnp.asarray(config.action_high, jnp.float32)
+    rand = jax.random.uniform(k_rand, low.shape, jnp.float32, low, high)
+    action = jnp.where(any_known, x[None], rand)
+    return action, jnp.where(any_known, value, jnp.float32(config.default_value)), any_known

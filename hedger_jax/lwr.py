@@ -1,0 +1,96 @@
+"""Locally weighted linear regression and the independent-variable hull on a masked set.
+
+Pure math, no knowledge of RL. Inputs are one query's neighbour set, *centred on the query*:
+``zc`` (k, d) = neighbour - query, so the design matrix is X = [1, zc] (k, p = d + 1) and
+
+* the local linear fit at the query is the intercept of the weighted least-squares fit;
+* the query's design row is x_q = e_0 = [1, 0, ..., 0], so the IVH test
+  x_q'(X'X)^-1 x_q <= max_i v_ii reduces to one diagonal entry of (X'X)^-1.
+
+Why an intercept column: with it the hat-matrix diagonal is v_ii = 1/n + Mahalanobis distance
+of point i from the neighbours' centroid, so the hull is Cook's ellipsoid centred on the
+data and the test is invariant under affine changes of the inputs. Without it the ellipsoid
+would be centred on the coordinate origin, which means nothing here.
+
+Numerics (float32): both normal-equation matrices are equilibrated (scaled to a unit
+diagonal, an exact change of variables for both the hull test and the intercept), then a
+tiny ridge is added before the Cholesky factorisation. The values ``y`` enter only linearly,
+so tiny values (gamma^100 ~ 1e-10) keep their relative precision: there is no absolute
+epsilon on them.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jax.scipy.linalg import solve_triangular
+
+
+class LocalFit(NamedTuple):
+    """value: float32 () fitted value at the query (the intercept).
+    inside: bool () query inside the independent-variable hull of the masked points.
+    """
+
+    value: jax.Array
+    inside: jax.Array
+
+
+def kernel_weights(sqdist: jax.Array, bandwidth: float, mask: jax.Array) -> jax.Array:
+    """Gaussian kernel kappa_i = exp(-d_i^2 / h^2) on masked squared distances (k,) -> (k,)."""
+    return jnp.where(mask, jnp.exp(-sqdist / jnp.float32(bandwidth) ** 2), 0.0)
+
+
+def design_matrix(zc: jax.Array, mask: jax.Array) -> jax.Array:
+    """X = [1, zc] with masked rows zeroed: zc (k, d), mask (k,) -> (k, d + 1)."""
+    ones = jnp.ones(zc.shape[:-1] + (1,), zc.dtype)
+    return jnp.concatenate([ones, zc], axis=-1) * mask[..., None].astype(zc.dtype)
+
+
+def _equilibrated_cholesky(gram: jax.Array, ridge: float):
+    """gram (p, p) PSD -> (L, s) with L L' = D^-1 gram D^-1 + ridge I, D = diag(s)."""
+    diag = jnp.diagonal(gram)
+    s = jnp.where(diag > 0, jnp.sqrt(diag), 1.0)
+    scaled = gram / (s[:, None] * s[None, :])
+    p = gram.shape[-1]
+    scaled = scaled + jnp.float32(ridge) * jnp.eye(p, dtype=gram.dtype)
+    return jnp.linalg.cholesky(scaled), s
+
+
+def hull_contains(X: jax.Array, mask: jax.Array, ridge: float, tol: float) -> jax.Array:
+    """IVH test for the query at the origin of the centred design X (k, p) -> bool ().
+
+    Inside iff e_0'(X'X)^-1 e_0 <= (1 + tol) * max_i x_i'(X'X)^-1 x_i over masked rows.
+    """
+    L, s = _equilibrated_cholesky(X.T @ X, ridge)
+    Y = solve_triangular(L, (X / s).T, lower=True)             # (p, k)
+    leverage = jnp.where(mask, jnp.sum(Y * Y, axis=0), -jnp.inf)  # v_ii
+    e0 = jnp.zeros((X.shape[-1],), X.dtype).at[0].set(1.0) / s
+    yq = solve_triangular(L, e0, lower=True)
+    return jnp.sum(yq * yq) <= (1.0 + tol) * jnp.max(leverage)
+
+
+def weighted_intercept(X: jax.Array, y: jax.Array, w: jax.Array, ridge: float) -> jax.Array:
+    """Intercept of the weighted least-squares fit of y (k,) on X (k, p), weights w (k,)."""
+    Xw = X * w[:, None]
+    L, s = _equilibrated_cholesky(Xw.T @ X, ridge)
+    rhs = (Xw.T @ y) / s
+    u = solve_triangular(L, rhs, lower=True)
+    beta_scaled = solve_triangular(L.T, u, lower=False)
+    return beta_scaled[0] / s[0]
+
+
+def local_fit(zc: jax.Array, y: jax.Array, w: jax.Array, mask: jax.Array, *,
+              ridge: float = 1e-6, ivh_tol: float = 1e-3) -> LocalFit:
+    """Fit at the query from its centred neighbour set.
+
+    zc (k, d) neighbour - query; y (k,) values; w (k,) kernel weights (0 where masked);
+    mask (k,) bool. Returns ``LocalFit(value (), inside ())``. Finite for any input that is
+    finite (empty sets, duplicates, collinear points): the ridge keeps the factorisations
+    positive definite.
+    """
+    X = design_matrix(zc, mask)
+    y = jnp.where(mask, y, 0.0)
+    value = weighted_intercept(X, y, w, ridge)
+    inside = hull_contains(X, mask, ridge, ivh_tol)
+    return LocalFit(value=value, inside=inside)

@@ -1,0 +1,190 @@
+"""The fixed-capacity, preallocated point memory and its neighbour selection.
+
+``Memory`` is a pytree of preallocated arrays, so every operation on it is jittable and
+vmappable (a batch of memories is one seed each). Points are stored *scaled* (see
+``HedgerConfig.input_scale``) and column-major, shape (d, capacity): the distance pass over
+(d, N) is several times faster on CPU than over (N, d).
+
+Slots ``[0, size)`` hold valid points under ``full_policy="error"``; under
+``"overwrite_oldest"`` the memory is a ring buffer (``head`` is the next slot to write) and
+once full every slot is valid. Invalid slots are masked out of every neighbour search.
+
+Errors inside jitted code cannot raise, so they are recorded in ``flags`` and raised on the
+host by ``memory_check``:
+  bit ``FLAG_FULL`` (1)       a point was dropped because the memory was full ("error" policy);
+  bit ``FLAG_NONFINITE`` (2)  a NaN/inf value tried to enter the memory (it was not stored).
+The stored data are never corrupted by either event.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from hedger_jax.config import HedgerConfig
+
+FLAG_FULL = 1
+FLAG_NONFINITE = 2
+
+
+class MemoryFullError(RuntimeError):
+    """The memory was full under ``full_policy="error"`` and a point was dropped."""
+
+
+class NonFiniteValueError(FloatingPointError):
+    """A NaN or infinite value tried to enter the memory (it was refused)."""
+
+
+class Memory(NamedTuple):
+    """HEDGER's training points.
+
+    Attributes:
+      points: float32 (d, capacity) scaled inputs; column i is point i.
+      values: float32 (capacity,) the Q-value stored with each point.
+      size:   int32 () number of valid points (<= capacity).
+      head:   int32 () next slot to write.
+      flags:  int32 () error bits (``FLAG_FULL``, ``FLAG_NONFINITE``).
+    """
+
+    points: jax.Array
+    values: jax.Array
+    size: jax.Array
+    head: jax.Array
+    flags: jax.Array
+
+
+class Neighbours(NamedTuple):
+    """The neighbour set K of one query (fixed size ``max_neighbours``, masked).
+
+    indices: int32 (k,) slots in the memory (arbitrary where ``mask`` is False).
+    sqdist:  float32 (k,) squared scaled distance to the query (0 where masked).
+    mask:    bool (k,) True for real neighbours (within ``k_thresh``).
+    """
+
+    indices: jax.Array
+    sqdist: jax.Array
+    mask: jax.Array
+
+
+def init_memory(config: HedgerConfig) -> Memory:
+    """An empty memory with ``config.capacity`` preallocated slots."""
+    return Memory(
+        points=jnp.zeros((config.dim, config.capacity), jnp.float32),
+        values=jnp.zeros((config.capacity,), jnp.float32),
+        size=jnp.zeros((), jnp.int32),
+        head=jnp.zeros((), jnp.int32),
+        flags=jnp.zeros((), jnp.int32),
+    )
+
+
+def scale_inputs(config: HedgerConfig, state: jax.Array, action: jax.Array) -> jax.Array:
+    """Scaled query z = (concat(state, action) - offset) * scale.
+
+    state (..., S), action (..., A) -> float32 (..., d).
+    """
+    x = jnp.concatenate([jnp.asarray(state, jnp.float32), jnp.asarray(action, jnp.float32)], -1)
+    offset = jnp.asarray(config.input_offset, jnp.float32)
+    scale = jnp.asarray(config.input_scale, jnp.float32)
+    return (x - offset) * scale
+
+
+def valid_mask(memory: Memory) -> jax.Array:
+    """bool (capacity,): which slots hold a point."""
+    capacity = memory.values.shape[-1]
+    return jnp.arange(capacity) < memory.size
+
+
+def select_neighbours(config: HedgerConfig, memory: Memory, z: jax.Array) -> Neighbours:
+    """K: the stored points within ``k_thresh`` of the scaled query ``z`` (d,).
+
+    Brute force: squared distances to every slot, empty slots masked to +inf, then the
+    ``max_neighbours`` nearest by ``lax.top_k`` (kept in float32, where top_k is fast), then
+    the threshold. If more than ``max_neighbours`` points lie within ``k_thresh`` only the
+    nearest are used. This is the one function a faster index replaces.
+    """
+    capacity = memory.values.shape[-1]
+    diff = memory.points - z[:, None]
+    d2 = jnp.sum(diff * diff, axis=0)
+    d2 = jnp.where(valid_mask(memory), d2, jnp.inf)
+    k = min(config.max_neighbours, capacity)
+    neg_d2, idx = jax.lax.top_k(-d2, k)
+    d2_sel = -neg_d2
+    mask = d2_sel <= jnp.float32(config.k_thresh) ** 2
+    if k < config.max_neighbours:  # tiny memory: pad to the static neighbour count
+        pad = config.max_neighbours - k
+        idx = jnp.concatenate([idx, jnp.zeros((pad,), idx.dtype)])
+        d2_sel = jnp.concatenate([d2_sel, jnp.full((pad,), jnp.inf, d2_sel.dtype)])
+        mask = jnp.concatenate([mask, jnp.zeros((pad,), bool)])
+    return Neighbours(indices=idx.astype(jnp.int32), sqdist=jnp.where(mask, d2_sel, 0.0),
+                      mask=mask)
+
+
+def add_scaled(config: HedgerConfig, memory: Memory, z: jax.Array, value: jax.Array,
+               write: jax.Array = True) -> Memory:
+    """Store one scaled point ``z`` (d,) with ``value`` () if ``write`` (bool ()).
+
+    Under ``"error"`` a full memory drops the point and sets ``FLAG_FULL``; under
+    ``"overwrite_oldest"`` the oldest slot is replaced. A non-finite value (or point) is
+    refused and sets ``FLAG_NONFINITE``.
+    """
+    capacity = memory.values.shape[-1]
+    value = jnp.asarray(value, jnp.float32)
+    write = jnp.asarray(write, bool)
+    finite = jnp.isfinite(value) & jnp.all(jnp.isfinite(z))
+    full = memory.size >= capacity
+    if config.full_policy == "error":
+        room = ~full
+    else:
+        room = jnp.ones((), bool)
+    do = write & finite & room
+    slot = memory.head
+    points = memory.points.at[:, slot].set(jnp.where(do, z, memory.points[:, slot]))
+    values = memory.values.at[slot].set(jnp.where(do, value, memory.values[slot]))
+    head = jnp.where(do, (memory.head + 1) % capacity, memory.head)
+    size = jnp.where(do, jnp.minimum(memory.size + 1, capacity), memory.size)
+    flags = memory.flags
+    flags = flags | jnp.where(write & ~finite, FLAG_NONFINITE, 0)
+    flags = flags | jnp.where(write & finite & ~room, FLAG_FULL, 0)
+    return Memory(points, values, size.astype(jnp.int32), head.astype(jnp.int32),
+                  flags.astype(jnp.int32))
+
+
+def add_points(config: HedgerConfig, memory: Memory, states: jax.Array, actions: jax.Array,
+               values: jax.Array) -> Memory:
+    """Store n points: states (n, S), actions (n, A), values (n,) -> memory. Jittable."""
+    zs = scale_inputs(config, states, actions)
+
+    def body(mem, item):
+        z, v = item
+        return add_scaled(config, mem, z, v), None
+
+    memory, _ = jax.lax.scan(body, memory, (zs, jnp.asarray(values, jnp.float32)))
+    return memory
+
+
+def memory_check(memory: Memory) -> Memory:
+    """Host-side: raise if the memory's error flags are set; returns the memory unchanged.
+
+    For a batch of memories (leading axes) any flagged member raises.
+    """
+    flags = np.asarray(jax.device_get(memory.flags))
+    if np.any(flags & FLAG_NONFINITE):
+        raise NonFiniteValueError(
+            "a NaN/inf value tried to enter the HEDGER memory and was refused "
+            f"(members flagged: {np.flatnonzero(np.atleast_1d(flags) & FLAG_NONFINITE).tolist()})")
+    if np.any(flags & FLAG_FULL):
+        raise MemoryFullError(
+            "the HEDGER memory is full (capacity "
+            f"{memory.values.shape[-1]}) and points were dropped; raise `capacity` or use "
+            "full_policy='overwrite_oldest'")
+    return memory
+
+
+def stored_points(config: HedgerConfig, memory: Memory):
+    """Host-side view of one memory's valid points: (inputs (n, d) unscaled, values (n,))."""
+    size = int(memory.size)
+    z = np.asarray(memory.points)[:, :size].T.astype(np.float64)
+    x = z / np.asarray(config.input_scale) + np.asarray(config.input_offset)
+    return x, np.asarray(memory.values)[:size]

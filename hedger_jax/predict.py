@@ -1,0 +1,61 @@
+"""Algorithm 1: HEDGER prediction (neighbours -> IVH -> locally weighted regression)."""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from hedger_jax.config import HedgerConfig
+from hedger_jax.lwr import kernel_weights, local_fit
+from hedger_jax.memory import Memory, scale_inputs, select_neighbours
+
+
+class Prediction(NamedTuple):
+    """One prediction with the neighbour set it used (k = ``max_neighbours``).
+
+    value:        float32 () Q(s, a), or ``default_value`` when not known.
+    known:        bool () enough neighbours and (with ``use_ivh``) inside their hull.
+    n_neighbours: int32 () |K|, the neighbours within ``k_thresh`` (at most k).
+    indices:      int32 (k,) memory slots of K (meaningless where ``mask`` is False).
+    weights:      float32 (k,) kernel weights kappa_i (0 where masked).
+    mask:         bool (k,) which entries of ``indices`` are real neighbours.
+    """
+
+    value: jax.Array
+    known: jax.Array
+    n_neighbours: jax.Array
+    indices: jax.Array
+    weights: jax.Array
+    mask: jax.Array
+
+
+def predict_scaled(config: HedgerConfig, memory: Memory, z: jax.Array) -> Prediction:
+    """Algorithm 1 for a scaled query z (d,). See ``predict_detailed``."""
+    nb = select_neighbours(config, memory, z)
+    zc = memory.points[:, nb.indices].T - z                  # (k, d), centred on the query
+    zc = jnp.where(nb.mask[:, None], zc, 0.0)
+    y = memory.values[nb.indices]
+    w = kernel_weights(nb.sqdist, config.bandwidth, nb.mask)
+    fit = local_fit(zc, y, w, nb.mask, ridge=config.ridge, ivh_tol=config.ivh_tol)
+    count = jnp.sum(nb.mask).astype(jnp.int32)
+    known = (count >= config.k_min) & jnp.isfinite(fit.value)
+    if config.use_ivh:
+        known = known & fit.inside
+    value = jnp.where(known, fit.value, jnp.float32(config.default_value))
+    return Prediction(value, known, count, nb.indices, w, nb.mask)
+
+
+def predict_detailed(config: HedgerConfig, memory: Memory, state: jax.Array,
+                     action: jax.Array) -> Prediction:
+    """Algorithm 1 for one query: state (S,), action (A,) -> ``Prediction``.
+
+    Vmap it over queries, candidate actions or memories (seeds).
+    """
+    return predict_scaled(config, memory, scale_inputs(config, state, action))
+
+
+def predict(config: HedgerConfig, memory: Memory, state: jax.Array, action: jax.Array):
+    """Q(s, a): state (S,), action (A,) -> (value f32 (), known bool (), n_neighbours i32 ())."""
+    p = predict_detailed(config, memory, state, action)
+    return p.value, p.known, p.n_neighbours

@@ -1,0 +1,90 @@
+"""Algorithm 2 (HEDGER training) for one experience, and reverse replay of an episode."""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from hedger_jax.config import HedgerConfig
+from hedger_jax.greedy import greedy_value
+from hedger_jax.memory import FLAG_NONFINITE, Memory, add_scaled, scale_inputs
+from hedger_jax.predict import predict_scaled
+
+
+class Transition(NamedTuple):
+    """One experience (s, a, r, s'); an episode has a leading time axis T on every field.
+
+    obs: float32 (S,); action: float32 (A,); reward: float32 (); next_obs: float32 (S,);
+    terminated: bool () true terminal (no bootstrap; a time-limit truncation is *not* one);
+    valid: bool () False for padding (the step changes nothing).
+    """
+
+    obs: jax.Array
+    action: jax.Array
+    reward: jax.Array
+    next_obs: jax.Array
+    terminated: jax.Array
+    valid: jax.Array
+
+
+class TrainInfo(NamedTuple):
+    """q: prediction Q(s,a) before the update; q_next: max_a' Q(s',a') (0 at a terminal);
+    q_new: the stored target; known: whether Q(s,a) was known. All float32/bool ()."""
+
+    q: jax.Array
+    q_next: jax.Array
+    q_new: jax.Array
+    known: jax.Array
+
+
+def region_update(memory: Memory, indices: jax.Array, weights: jax.Array, mask: jax.Array,
+                  target: jax.Array, apply: jax.Array = True) -> Memory:
+    """Q_i <- Q_i + kappa_i (target - Q_i) for every masked neighbour i (Algorithm 2, l. 7-8).
+
+    indices (k,) distinct slots, weights (k,) in [0, 1], mask (k,), target (). A non-finite
+    target is refused (flag ``FLAG_NONFINITE``), so the memory never receives NaN.
+    """
+    finite = jnp.isfinite(target)
+    use = mask & jnp.asarray(apply, bool) & finite
+    old = memory.values[indices]
+    delta = jnp.where(use, weights * (target - old), 0.0)
+    values = memory.values.at[indices].add(delta)
+    flags = memory.flags | jnp.where(jnp.asarray(apply, bool) & ~finite, FLAG_NONFINITE, 0)
+    return memory._replace(values=values, flags=flags.astype(jnp.int32))
+
+
+def train_step(config: HedgerConfig, memory: Memory, transition: Transition):
+    """Algorithm 2 for one experience -> (memory, TrainInfo). Jittable, vmappable.
+
+    q = Q(s, a) with its neighbour set K and weights kappa; q_next = max_a' Q(s', a')
+    (0 if terminated); q_new = q + alpha (r + gamma q_next - q); (s, a) -> q_new is stored as
+    a new point; with ``region_update`` every neighbour in K moves toward q_new by kappa_i.
+    K is the set found before storing, and is updated whether or not q was known (the paper's
+    Algorithm 2 updates "each point in K"). An invalid transition changes nothing.
+    """
+    t = transition
+    valid = jnp.asarray(t.valid, bool)
+    z = scale_inputs(config, t.obs, t.action)
+    p = predict_scaled(config, memory, z)
+    q_next, _ = greedy_value(config, memory, t.next_obs)
+    q_next = jnp.where(jnp.asarray(t.terminated, bool), 0.0, q_next)
+    reward = jnp.asarray(t.reward, jnp.float32)
+    q_new = p.value + config.alpha * (reward + config.gamma * q_next - p.value)
+    if config.region_update:
+        memory = region_update(memory, p.indices, p.weights, p.mask, q_new, valid)
+    memory = add_scaled(config, memory, z, q_new, valid)
+    return memory, TrainInfo(p.value, q_next, q_new, p.known)
+
+
+def train_episode(config: HedgerConfig, memory: Memory, episode: Transition):
+    """Reverse replay (Lin 1992): ``train_step`` over an episode newest-first.
+
+    episode: ``Transition`` with leading axis T (padded steps have valid=False and change
+    nothing). Returns (memory, TrainInfo with leading axis T, in the episode's time order).
+    """
+
+    def body(mem, t):
+        return train_step(config, mem, t)
+
+    return jax.lax.scan(body, memory, episode, reverse=True)
