@@ -96,6 +96,18 @@ def valid_mask(memory: Memory) -> jax.Array:
     return jnp.arange(capacity) < memory.size
 
 
+def squared_distances(points: jax.Array, z: jax.Array) -> jax.Array:
+    """Squared distances from z (d,) to every column of points (d, N) -> (N,).
+
+    The sum over the d rows is unrolled: XLA's CPU reduction over a short leading axis is
+    10-17x slower than d fused elementwise passes (measured at d=3, N=20,000).
+    """
+    d2 = (points[0] - z[0]) ** 2
+    for i in range(1, points.shape[0]):
+        d2 = d2 + (points[i] - z[i]) ** 2
+    return d2
+
+
 def select_neighbours(config: HedgerConfig, memory: Memory, z: jax.Array) -> Neighbours:
     """K: the stored points within ``k_thresh`` of the scaled query ``z`` (d,).
 
@@ -105,8 +117,7 @@ def select_neighbours(config: HedgerConfig, memory: Memory, z: jax.Array) -> Nei
     nearest are used. This is the one function a faster index replaces.
     """
     capacity = memory.values.shape[-1]
-    diff = memory.points - z[:, None]
-    d2 = jnp.sum(diff * diff, axis=0)
+    d2 = squared_distances(memory.points, z)
     d2 = jnp.where(valid_mask(memory), d2, jnp.inf)
     k = min(config.max_neighbours, capacity)
     neg_d2, idx = jax.lax.top_k(-d2, k)

@@ -1,0 +1,384 @@
+"""Acting, episodes, the two learning phases, evaluation, and ``make_train``.
+
+One seed's whole run is a pure function::
+
+    train = make_train(env, hedger_config, run_config, phase1=demos)
+    results = jax.jit(jax.vmap(train))(jax.random.split(key, n_seeds))
+
+It knows environments only through the functional interface of ``envs.base`` (duck-typed:
+``reset``, ``step``, ``evaluation_starts``, ``action_space``, ``max_steps``).
+
+Phases (paper section 2.4):
+  1. an example policy is in control -- recorded demonstrations (a ``Transition`` batch with
+     leading axes (E, T)) or a piece of control code (``(policy, n_episodes)`` where
+     ``policy`` has pure ``init(key)`` and ``act(key, obs, pstate) -> (action, pstate)``) --
+     and HEDGER learns passively (reverse replay after each episode);
+  2. the learner's own epsilon-greedy policy is in control and learning continues.
+
+The run is cut into ``n_blocks`` blocks of phase-two episodes (``episodes_per_block``) or of
+training points (``points_per_block``); the greedy policy is evaluated after phase 1 and after
+every block. ``init`` / ``run_block`` expose the same computation block by block, so a
+host-side driver can show progress between blocks without any host round-trip inside them.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, NamedTuple, Optional
+
+import jax
+import jax.numpy as jnp
+
+from hedger_jax.config import HedgerConfig
+from hedger_jax.greedy import greedy_action
+from hedger_jax.memory import Memory, init_memory
+from hedger_jax.train import Transition, train_episode, train_step
+
+EXPLORATION = ("random", "gaussian")
+
+
+@dataclasses.dataclass(frozen=True)
+class RunConfig:
+    """Static settings of one learning run (the HEDGER settings live in ``HedgerConfig``).
+
+    epsilon: probability of an exploratory action.
+    exploration: "random" (a uniformly random action, the mountain-car protocol) or
+      "gaussian" (the greedy action plus N(0, noise_std) noise, clipped to the bounds; the
+      corridor protocol).
+    n_blocks: number of evaluation blocks of phase two.
+    episodes_per_block / points_per_block: the length of a block (exactly one must be set).
+    eval_episodes: greedy evaluation episodes per evaluation (learning off).
+    eval_max_steps: cap of an evaluation episode (a failure counts as this many steps).
+    train_max_steps: cap of a phase-two training episode (None: the env's ``max_steps``).
+    """
+
+    epsilon: float = 0.2
+    exploration: str = "random"
+    noise_std: float = 0.2
+    n_blocks: int = 20
+    episodes_per_block: Optional[int] = 10
+    points_per_block: Optional[int] = None
+    eval_episodes: int = 2500
+    eval_max_steps: int = 200
+    train_max_steps: Optional[int] = None
+
+    def __post_init__(self):
+        if not (0.0 <= self.epsilon <= 1.0):
+            raise ValueError(f"epsilon: must be in [0, 1], got {self.epsilon}")
+        if self.exploration not in EXPLORATION:
+            raise ValueError(f"exploration: must be one of {EXPLORATION}, got {self.exploration!r}")
+        if not self.noise_std >= 0:
+            raise ValueError(f"noise_std: must be >= 0, got {self.noise_std}")
+        if self.n_blocks < 0:
+            raise ValueError(f"n_blocks: must be >= 0, got {self.n_blocks}")
+        if (self.episodes_per_block is None) == (self.points_per_block is None):
+            raise ValueError("episodes_per_block / points_per_block: set exactly one of them")
+        for name in ("episodes_per_block", "points_per_block"):
+            v = getattr(self, name)
+            if v is not None and v < 1:
+                raise ValueError(f"{name}: must be >= 1, got {v}")
+        if self.eval_episodes < 1:
+            raise ValueError(f"eval_episodes: must be >= 1, got {self.eval_episodes}")
+        if self.eval_max_steps < 1:
+            raise ValueError(f"eval_max_steps: must be >= 1, got {self.eval_max_steps}")
+        if self.train_max_steps is not None and self.train_max_steps < 1:
+            raise ValueError(f"train_max_steps: must be >= 1, got {self.train_max_steps}")
+
+
+class Evaluation(NamedTuple):
+    """mean_steps: float32 () mean steps to the goal, failures counted as the cap;
+    success_rate: float32 () fraction of episodes that reached the goal."""
+
+    mean_steps: jax.Array
+    success_rate: jax.Array
+
+
+class RunState(NamedTuple):
+    """Carry of a run between blocks. memory: ``Memory``; key; points: int32 () training
+    points seen; episodes: int32 () phase-two episodes run."""
+
+    memory: Memory
+    key: jax.Array
+    points: jax.Array
+    episodes: jax.Array
+
+
+class BlockResult(NamedTuple):
+    """One evaluation: after phase 1 (block 0) or after a block of phase two.
+
+    evaluation: ``Evaluation``; points, episodes: int32 () totals at evaluation time;
+    train_steps_mean: float32 () mean length of the block's training episodes (0 for block 0);
+    memory_size: int32 (); flags: int32 () memory error bits.
+    """
+
+    evaluation: Evaluation
+    points: jax.Array
+    episodes: jax.Array
+    train_steps_mean: jax.Array
+    memory_size: jax.Array
+    flags: jax.Array
+
+
+def _success(info: Any, terminated: jax.Array) -> jax.Array:
+    if isinstance(info, dict) and "success" in info:
+        return jnp.asarray(info["success"], bool)
+    return jnp.asarray(terminated, bool)
+
+
+def random_action(config: HedgerConfig, key: jax.Array) -> jax.Array:
+    """A uniformly random action (A,): from the discrete set or in the box."""
+    if config.is_discrete:
+        actions = jnp.asarray(config.discrete_actions, jnp.float32)
+        return actions[jax.random.randint(key, (), 0, actions.shape[0])]
+    low = jnp.asarray(config.action_low, jnp.float32)
+    high = jnp.asarray(config.action_high, jnp.float32)
+    return jax.random.uniform(key, low.shape, jnp.float32, low, high)
+
+
+def explore_action(config: HedgerConfig, run: RunConfig, memory: Memory, obs: jax.Array,
+                   key: jax.Array) -> jax.Array:
+    """Epsilon-greedy action (A,) for one observation (S,)."""
+    k_greedy, k_coin, k_explore = jax.random.split(key, 3)
+    greedy, _, _ = greedy_action(config, memory, obs, k_greedy)
+    if run.exploration == "random":
+        explore = random_action(config, k_explore)
+    else:
+        low = jnp.asarray(config.action_low, jnp.float32)
+        high = jnp.asarray(config.action_high, jnp.float32)
+        noise = run.noise_std * jax.random.normal(k_explore, greedy.shape)
+        explore = jnp.clip(greedy + noise, low, high)
+    return jnp.where(jax.random.uniform(k_coin) < run.epsilon, explore, greedy)
+
+
+def rollout(env: Any, env_params: Any, act, key: jax.Array, max_steps: int,
+            obs0: jax.Array, state0: Any, act_state: Any = None):
+    """Run one episode of at most ``max_steps`` with ``act(key, obs, act_state) -> (a, act_state)``.
+
+    Stops early (``lax.while_loop``) once the episode terminated or was truncated; steps
+    after the end are padding (valid=False). Returns (Transition with leading axis
+    max_steps, length int32 ()).
+    """
+    obs_dim = obs0.shape[-1]
+    a_dim = env.action_space.action_dim
+    buf = Transition(
+        obs=jnp.zeros((max_steps, obs_dim), jnp.float32),
+        action=jnp.zeros((max_steps, a_dim), jnp.float32),
+        reward=jnp.zeros((max_steps,), jnp.float32),
+        next_obs=jnp.zeros((max_steps, obs_dim), jnp.float32),
+        terminated=jnp.zeros((max_steps,), bool),
+        valid=jnp.zeros((max_steps,), bool),
+    )
+
+    def cond(c):
+        t, done = c[0], c[1]
+        return (t < max_steps) & ~done
+
+    def body(c):
+        t, done, obs, state, act_state, key, buf = c
+        key, k_act, k_step = jax.random.split(key, 3)
+        action, act_state = act(k_act, obs, act_state)
+        action = jnp.asarray(action, jnp.float32).reshape((a_dim,))
+        next_obs, state, reward, terminated, truncated, _ = env.step(k_step, state, action,
+                                                                     env_params)
+        truncated = truncated | (t + 1 >= max_steps)
+        tr = Transition(obs, action, jnp.asarray(reward, jnp.float32), next_obs,
+                        jnp.asarray(terminated, bool), jnp.ones((), bool))
+        buf = jax.tree_util.tree_map(lambda b, x: b.at[t].set(x), buf, tr)
+        return t + 1, terminated | truncated, next_obs, state, act_state, key, buf
+
+    init = (jnp.zeros((), jnp.int32), jnp.zeros((), bool), obs0, state0, act_state, key, buf)
+    t, _, _, _, _, _, buf = jax.lax.while_loop(cond, body, init)
+    return buf, t
+
+
+def train_prefix(config: HedgerConfig, memory: Memory, episode: Transition, length: jax.Array):
+    """Reverse replay of the first ``length`` steps of an episode (newest first).
+
+    Same result as ``train_episode`` on an episode whose steps >= length are padding, but it
+    only does ``length`` steps of work (a ``fori_loop`` with a traced trip count).
+    """
+
+    def body(i, mem):
+        t = length - 1 - i
+        step = jax.tree_util.tree_map(lambda x: x[t], episode)
+        mem, _ = train_step(config, mem, step)
+        return mem
+
+    return jax.lax.fori_loop(0, length, body, memory)
+
+
+def evaluate(env: Any, env_params: Any, config: HedgerConfig, memory: Memory, key: jax.Array,
+             n_episodes: int, max_steps: int) -> Evaluation:
+    """Greedy policy, learning off, ``n_episodes`` from ``env.evaluation_starts`` (vmapped).
+
+    The metric is the mean number of steps to the goal; an episode that does not reach it
+    within ``max_steps`` (or fails, e.g. hits a wall) counts as ``max_steps``.
+    """
+    k_starts, k_run = jax.random.split(key)
+    obs, states = env.evaluation_starts(k_starts, env_params, n_episodes)
+    keys = jax.random.split(k_run, n_episodes)
+
+    def one_step(obs, state, key):
+        k_a, k_s = jax.random.split(key)
+        action, _, _ = greedy_action(config, memory, obs, k_a)
+        next_obs, state, _, terminated, truncated, info = env.step(k_s, state, action, env_params)
+        return next_obs, state, terminated, truncated, _success(info, terminated)
+
+    def cond(c):
+        t, done = c[0], c[1]
+        return (t < max_steps) & ~jnp.all(done)
+
+    def body(c):
+        t, done, success, steps, obs, states, keys = c
+        split = jax.vmap(jax.random.split)(keys)
+        keys, k_step = split[:, 0], split[:, 1]
+        nobs, nstates, term, trunc, succ = jax.vmap(one_step)(obs, states, k_step)
+        active = ~done
+        steps = steps + active.astype(jnp.int32)
+        success = success | (active & succ)
+        done = done | (active & (term | trunc))
+        keep = lambda new, old: jnp.where(  # noqa: E731
+            active.reshape(active.shape + (1,) * (new.ndim - 1)), new, old)
+        obs = keep(nobs, obs)
+        states = jax.tree_util.tree_map(keep, nstates, states)
+        return t + 1, done, success, steps, obs, states, keys
+
+    n = n_episodes
+    init = (jnp.zeros((), jnp.int32), jnp.zeros((n,), bool), jnp.zeros((n,), bool),
+            jnp.zeros((n,), jnp.int32), obs, states, keys)
+    _, _, success, steps, _, _, _ = jax.lax.while_loop(cond, body, init)
+    steps = jnp.where(success, steps, max_steps).astype(jnp.float32)
+    return Evaluation(jnp.mean(steps), jnp.mean(success.astype(jnp.float32)))
+
+
+class Train(NamedTuple):
+    """What ``make_train`` returns: ``train(key) -> (RunState, BlockResult with leading axis
+    n_blocks + 1)`` and its pieces ``init(key) -> (RunState, BlockResult)`` (phase 1 and the
+    first evaluation) and ``run_block(RunState) -> (RunState, BlockResult)``."""
+
+    train: Any
+    init: Any
+    run_block: Any
+
+
+def _phase1_fn(env, env_params, config: HedgerConfig, phase1, max_steps: int):
+    """memory, key -> (memory, points) for the chosen phase-1 source."""
+    if phase1 is None:
+        return lambda memory, key: (memory, jnp.zeros((), jnp.int32))
+    if isinstance(phase1, Transition):
+        episodes = jax.tree_util.tree_map(jnp.asarray, phase1)
+        if episodes.reward.ndim != 2:
+            raise ValueError("phase1 demonstrations: expected a Transition with leading axes "
+                             f"(episodes, steps), got reward shape {episodes.reward.shape}")
+
+        def learn_demos(memory, key):
+            del key
+
+            def body(mem, ep):
+                mem, _ = train_episode(config, mem, ep)
+                return mem, None
+
+            memory, _ = jax.lax.scan(body, memory, episodes)
+            return memory, jnp.sum(episodes.valid).astype(jnp.int32)
+
+        return learn_demos
+    policy, n_episodes = phase1[0], int(phase1[1])
+    start = phase1[2] if len(phase1) > 2 else None
+
+    def learn_policy(memory, key):
+        def body(carry, k):
+            mem, points = carry
+            k_reset, k_init, k_run = jax.random.split(k, 3)
+            if start is None:
+                obs0, s0 = env.reset(k_reset, env_params)
+            else:
+                obs0, s0 = env.reset_to(k_reset, env_params, jnp.asarray(start, jnp.float32))
+            ep, length = rollout(env, env_params, policy.act, k_run, max_steps, obs0, s0,
+                                 policy.init(k_init))
+            mem = train_prefix(config, mem, ep, length)
+            return (mem, points + length), None
+
+        (memory, points), _ = jax.lax.scan(body, (memory, jnp.zeros((), jnp.int32)),
+                                           jax.random.split(key, n_episodes))
+        return memory, points
+
+    return learn_policy
+
+
+def make_train(env: Any, config: HedgerConfig, run: RunConfig, *, env_params: Any = None,
+               phase1: Any = None, phase1_max_steps: int = 1000) -> Train:
+    """Build the pure functions of one seed's run (see the module docstring).
+
+    phase1: ``None``; demonstrations as a ``Transition`` with leading axes (E, T) (see
+      ``transitions_from_demonstrations``); or ``(policy, n_episodes[, start])`` for an example
+      policy in control (episodes of at most ``phase1_max_steps``, from ``env.reset`` or from
+      ``env.reset_to(start)``).
+    """
+    if env_params is None:
+        env_params = env.default_params()
+    max_steps = int(run.train_max_steps or env.max_steps)
+    phase1_fn = _phase1_fn(env, env_params, config, phase1, phase1_max_steps)
+
+    def act(k, obs, memory):
+        return explore_action(config, run, memory, obs, k), memory
+
+    def one_episode(memory, key):
+        k_reset, k_run = jax.random.split(key)
+        obs0, s0 = env.reset(k_reset, env_params)
+        ep, length = rollout(env, env_params, act, k_run, max_steps, obs0, s0, memory)
+        return train_prefix(config, memory, ep, length), length
+
+    def do_eval(memory, key, points, episodes, mean_len):
+        ev = evaluate(env, env_params, config, memory, key, run.eval_episodes,
+                      run.eval_max_steps)
+        return BlockResult(ev, points, episodes, mean_len, memory.size, memory.flags)
+
+    def init(key):
+        k_phase1, k_eval, k_run = jax.random.split(key, 3)
+        memory, points = phase1_fn(init_memory(config), k_phase1)
+        state = RunState(memory, k_run, points, jnp.zeros((), jnp.int32))
+        return state, do_eval(memory, k_eval, points, state.episodes, jnp.float32(0.0))
+
+    def run_block(state: RunState):
+        key, k_block, k_eval = jax.random.split(state.key, 3)
+        target = state.points + (run.points_per_block or 0)
+
+        def cond(c):
+            _, points, n_ep, _, _ = c
+            if run.episodes_per_block is not None:
+                return n_ep < run.episodes_per_block
+            return points < target
+
+        def body(c):
+            memory, points, n_ep, steps, k = c
+            k, k_ep = jax.random.split(k)
+            memory, length = one_episode(memory, k_ep)
+            return memory, points + length, n_ep + 1, steps + length, k
+
+        init_c = (state.memory, state.points, jnp.zeros((), jnp.int32),
+                  jnp.zeros((), jnp.int32), k_block)
+        memory, points, n_ep, steps, _ = jax.lax.while_loop(cond, body, init_c)
+        episodes = state.episodes + n_ep
+        mean_len = steps.astype(jnp.float32) / jnp.maximum(n_ep, 1).astype(jnp.float32)
+        new_state = RunState(memory, key, points, episodes)
+        return new_state, do_eval(memory, k_eval, points, episodes, mean_len)
+
+    def train(key):
+        state, first = init(key)
+        state, rest = jax.lax.scan(lambda s, _: run_block(s), state, None, length=run.n_blocks)
+        results = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a[None], b]), first, rest)
+        return state, results
+
+    return Train(train, init, run_block)
+
+
+def transitions_from_demonstrations(demos: Any) -> Transition:
+    """A ``Transition`` batch (E, T, ...) from an ``envs.demonstrations.Demonstrations``-like
+    object (fields obs, action, reward, next_obs, terminated, valid)."""
+    return Transition(
+        obs=jnp.asarray(demos.obs, jnp.float32),
+        action=jnp.asarray(demos.action, jnp.float32),
+        reward=jnp.asarray(demos.reward, jnp.float32),
+        next_obs=jnp.asarray(demos.next_obs, jnp.float32),
+        terminated=jnp.asarray(demos.terminated, bool),
+        valid=jnp.asarray(demos.valid, bool),
+    )
