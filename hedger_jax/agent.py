@@ -30,7 +30,7 @@ import jax.numpy as jnp
 
 from hedger_jax.config import HedgerConfig
 from hedger_jax.greedy import greedy_action
-from hedger_jax.memory import Memory, init_memory
+from hedger_jax.memory import Memory, init_memory, refresh_index
 from hedger_jax.train import Transition, train_episode, train_step
 
 EXPLORATION = ("random", "gaussian")
@@ -213,6 +213,7 @@ def evaluate(env: Any, env_params: Any, config: HedgerConfig, memory: Memory, ke
     The metric is the mean number of steps to the goal; an episode that does not reach it
     within ``max_steps`` (or fails, e.g. hits a wall) counts as ``max_steps``.
     """
+    memory = refresh_index(config, memory)
     k_starts, k_run = jax.random.split(key)
     obs, states = env.evaluation_starts(k_starts, env_params, n_episodes)
     keys = jax.random.split(k_run, n_episodes)
@@ -322,6 +323,7 @@ def make_train(env: Any, config: HedgerConfig, run: RunConfig, *, env_params: An
         return explore_action(config, run, memory, obs, k), memory
 
     def one_episode(memory, key):
+        memory = refresh_index(config, memory)
         k_reset, k_run = jax.random.split(key)
         obs0, s0 = env.reset(k_reset, env_params)
         ep, length = rollout(env, env_params, act, k_run, max_steps, obs0, s0, memory)

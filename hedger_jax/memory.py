@@ -175,6 +175,16 @@ def add_points(config: HedgerConfig, memory: Memory, states: jax.Array, actions:
     return memory
 
 
+def refresh_index(config: HedgerConfig, memory: Memory) -> Memory:
+    """Rebuild the neighbour index (if the config uses one) for the memory's current points.
+
+    The agent calls it at the start of every episode and before every evaluation, i.e.
+    whenever the memory is about to be queried many times without new points. With the
+    brute-force search there is no index and this is the identity.
+    """
+    return memory
+
+
 def memory_check(memory: Memory) -> Memory:
     """Host-side: raise if the memory's error flags are set; returns the memory unchanged.
 
