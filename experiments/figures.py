@@ -1,0 +1,157 @@
+"""Each of the paper's figures as data: variants (env + HEDGER settings + run protocol).
+
+A figure is a thin configuration over the library; ``experiments.runner`` runs it. Modes:
+``quick`` (minutes on 2 CPU cores; fewer evaluation episodes and a shorter run) and
+``full`` (the paper's lengths and its 2500-episode evaluations).
+
+Defaults chosen from measurement (see README, "Sensitivity"): states scaled to [0, 1] per
+dimension, actions raw for discrete mountain car, bandwidth h = 0.015 (the narrow window
+in which HEDGER learns mountain car at all), k_thresh = h*sqrt(ln 100), k_min = d + 1, default
+("don't know") value 0, IVH with an intercept column.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Dict, Optional, Tuple
+
+from hedger_jax.agent import RunConfig
+
+MODES = ("quick", "full")
+
+#: The paper's numbers (Smart & Kaelbling 2000, section 3) and SPEC.md references.
+PAPER = {
+    "tabular_q": 56.0,
+    "random": 163.0,
+    "optimal": 50.0,
+    "demonstrators_mean": 210.0,
+    "fig1_converged": 56.0,
+    "fig2_after_200_runs": 56.0,
+    "corridor_hand_coded": 106.0,
+    "corridor_best": 70.0,
+}
+
+MOUNTAIN_CAR = dict(bandwidth=0.015, alpha=0.8, gamma=0.8)
+#: Continuous actions: the action is scaled by 0.1 so the whole range [-1, 1] spans 0.2 in
+#: scaled units, i.e. ~6 neighbour radii (see README, "Sensitivity").
+MOUNTAIN_CAR_CONTINUOUS = dict(MOUNTAIN_CAR, action_scale=0.1)
+CORRIDOR = dict(bandwidth=0.06, alpha=0.2, gamma=0.99, action_scale=0.25)
+
+
+@dataclasses.dataclass(frozen=True)
+class Variant:
+    """One line of a figure.
+
+    env: name for ``envs.make``. hedger: overrides for ``HedgerConfig.for_env`` (as a tuple of
+    items so the variant is hashable). phase1: None, "simulated_person" (11 mountain-car
+    demonstrations from a file-format round trip) or "hand_coded" (the corridor controller
+    in control for ``phase1_episodes`` runs). x_axis: "points" or "episodes".
+    """
+
+    label: str
+    env: str
+    hedger: Tuple[Tuple[str, Any], ...]
+    run: RunConfig
+    phase1: Optional[str] = None
+    phase1_episodes: int = 0
+    x_axis: str = "episodes"
+
+    def hedger_kwargs(self) -> Dict[str, Any]:
+        return dict(self.hedger)
+
+
+@dataclasses.dataclass(frozen=True)
+class Figure:
+    name: str
+    title: str
+    variants: Tuple[Variant, ...]
+    x_label: str
+    reference: Tuple[Tuple[str, str], ...] = ()  # (label, key into reference values)
+
+
+def _items(d: Dict[str, Any], **extra: Any) -> Tuple[Tuple[str, Any], ...]:
+    return tuple(sorted(dict(d, **extra).items()))
+
+
+def _mc_random_starts(mode: str, label: str, continuous: bool, **hedger_extra: Any) -> Variant:
+    full = mode == "full"
+    base = MOUNTAIN_CAR_CONTINUOUS if continuous else MOUNTAIN_CAR
+    n_blocks = 30 if full else 6
+    return Variant(
+        label=label,
+        env="mountain_car_continuous" if continuous else "mountain_car_discrete",
+        hedger=_items(base, capacity=(n_blocks + 1) * 10_000 + 400, **hedger_extra),
+        run=RunConfig(n_blocks=n_blocks, episodes_per_block=None, points_per_block=10_000,
+                      eval_episodes=2500 if full else 300),
+        x_axis="points",
+    )
+
+
+def _mc_demos(mode: str, label: str, continuous: bool, **hedger_extra: Any) -> Variant:
+    full = mode == "full"
+    base = MOUNTAIN_CAR_CONTINUOUS if continuous else MOUNTAIN_CAR
+    return Variant(
+        label=label,
+        env="mountain_car_continuous" if continuous else "mountain_car_discrete",
+        hedger=_items(base, capacity=45_000, **hedger_extra),
+        run=RunConfig(n_blocks=10 if full else 4, episodes_per_block=20 if full else 50,
+                      eval_episodes=2500 if full else 300),
+        phase1="simulated_person",
+        x_axis="episodes",
+    )
+
+
+def build_figure(name: str, mode: str = "quick") -> Figure:
+    """The figure ``name`` ("fig1" ... "fig5") in ``mode`` ("quick" or "full")."""
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    full = mode == "full"
+    if name == "fig1":
+        return Figure("fig1", "Figure 1: HEDGER from random starts (mountain car)",
+                      (_mc_random_starts(mode, "discrete", False),
+                       _mc_random_starts(mode, "continuous", True)),
+                      "training points",
+                      (("tabular Q-learning", "tabular_q"), ("random policy", "random")))
+    if name == "fig2":
+        variants = [_mc_demos(mode, "discrete", False)]
+        if full:
+            variants.append(_mc_demos(mode, "continuous", True))
+        return Figure("fig2", "Figure 2: HEDGER with 11 demonstrations (mountain car)",
+                      tuple(variants), "phase-two training runs",
+                      (("demonstrators' mean", "demonstrators_mean"),
+                       ("tabular Q-learning", "tabular_q")))
+    if name == "fig3":
+        make = _mc_random_starts if full else _mc_demos
+        return Figure("fig3", "Figure 3: HEDGER without the IVH check (mountain car)",
+                      (make(mode, "discrete", False), make(mode, "continuous", True),
+                       make(mode, "discrete, IVH off", False, use_ivh=False),
+                       make(mode, "continuous, IVH off", True, use_ivh=False)),
+                      "training points" if full else "phase-two training runs",
+                      (("random policy", "random"), ("tabular Q-learning", "tabular_q")))
+    if name == "fig4":
+        make = _mc_random_starts if full else _mc_demos
+        return Figure("fig4", "Figure 4: HEDGER without region updating (mountain car)",
+                      (make(mode, "discrete", False), make(mode, "continuous", True),
+                       make(mode, "discrete, no region update", False, region_update=False),
+                       make(mode, "continuous, no region update", True, region_update=False)),
+                      "training points" if full else "phase-two training runs",
+                      (("tabular Q-learning", "tabular_q"),))
+    if name == "fig5":
+        variant = Variant(
+            label="HEDGER (corridor)",
+            env="corridor",
+            hedger=_items(CORRIDOR, capacity=12_000),
+            run=RunConfig(n_blocks=6, episodes_per_block=5, exploration="gaussian",
+                          noise_std=0.3, eval_episodes=50 if full else 20,
+                          eval_max_steps=200),
+            phase1="hand_coded",
+            phase1_episodes=25,
+            x_axis="episodes",
+        )
+        return Figure("fig5", "Figure 5: corridor following (simulated robot)", (variant,),
+                      "phase-two training runs",
+                      (("hand-coded controller", "corridor_hand_coded"),
+                       ("best achievable", "corridor_best")))
+    raise ValueError(f"unknown figure {name!r}; known: fig1, fig2, fig3, fig4, fig5")
+
+
+FIGURES = ("fig1", "fig2", "fig3", "fig4", "fig5")

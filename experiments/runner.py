@@ -1,0 +1,231 @@
+"""Run a figure's variants over vmapped seeds, block by block, resumably.
+
+For each variant the seeds are split into batches (``seed_batch``); each batch is one
+``jax.jit(jax.vmap(run_block))`` computation per evaluation block. After every block the
+batch's state (memories included) and results so far are checkpointed atomically, so an
+interrupted sweep resumes where it stopped without redoing finished work; a finished batch
+is written once, atomically, as a result file and never recomputed (a result cache keyed on
+the variant, its seeds and the library version, shared between figures).
+
+Seed ``i`` always uses ``jax.random.fold_in(PRNGKey(base_seed), i)``, so results do not
+depend on how seeds are batched.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import tempfile
+from typing import Any, Callable, Dict, List, Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import hedger_jax
+from hedger_jax.agent import BlockResult, make_train, transitions_from_demonstrations
+from hedger_jax.config import HedgerConfig
+from hedger_jax.memory import memory_check
+
+from experiments.figures import Variant
+
+
+def atomic_write_bytes(path: str, data: bytes) -> None:
+    """Write ``data`` to ``path`` atomically (temp file in the same directory + rename)."""
+    directory = os.path.dirname(os.path.abspath(path))
+    os.makedirs(directory, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=directory, prefix=".tmp-", suffix=os.path.basename(path))
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def atomic_write_json(path: str, obj: Any) -> None:
+    atomic_write_bytes(path, json.dumps(obj, indent=1, sort_keys=True).encode())
+
+
+def variant_key(variant: Variant, seeds: List[int], base_seed: int) -> str:
+    """A stable hash of everything that determines a variant's results for these seeds."""
+    blob = json.dumps({
+        "variant": repr(variant), "seeds": seeds, "base_seed": base_seed,
+        "version": hedger_jax.__version__,
+    }, sort_keys=True)
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+def build_variant(variant: Variant):
+    """(env, HedgerConfig, Train, phase1 description) for a variant."""
+    import envs
+
+    env = envs.make(variant.env)
+    config = HedgerConfig.for_env(env, **variant.hedger_kwargs())
+    phase1 = None
+    info: Dict[str, Any] = {}
+    if variant.phase1 == "simulated_person":
+        from envs.demonstrators import simulated_person_demonstrations
+
+        demos = simulated_person_demonstrations(seed=0)
+        lengths = np.asarray(demos.valid).sum(axis=1)
+        info = {"demonstrations": int(lengths.size), "demo_lengths": lengths.tolist(),
+                "demo_mean_steps": float(lengths.mean())}
+        phase1 = transitions_from_demonstrations(demos)
+    elif variant.phase1 == "hand_coded":
+        from envs.corridor_controllers import hand_coded_policy
+
+        phase1 = (hand_coded_policy(), variant.phase1_episodes)
+        info = {"phase1_episodes": variant.phase1_episodes, "phase1_policy": "hand_coded"}
+    elif variant.phase1 is not None:
+        raise ValueError(f"unknown phase1 source {variant.phase1!r}")
+    train = make_train(env, config, variant.run, phase1=phase1)
+    return env, config, train, info
+
+
+def _to_numpy(tree):
+    return jax.tree_util.tree_map(lambda x: np.asarray(x), tree)
+
+
+def _save_checkpoint(path: str, state, results: List[BlockResult], block: int, key: str):
+    leaves = jax.tree_util.tree_leaves(_to_numpy(state))
+    res_leaves = jax.tree_util.tree_leaves(
+        _to_numpy(jax.tree_util.tree_map(lambda *xs: np.stack(xs, 1), *results)))
+    import io
+
+    buf = io.BytesIO()
+    arrays = {f"s{i}": a for i, a in enumerate(leaves)}
+    arrays.update({f"r{i}": a for i, a in enumerate(res_leaves)})
+    arrays["meta"] = np.frombuffer(json.dumps({"block": block, "key": key}).encode(), np.uint8)
+    np.savez(buf, **arrays)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def _load_checkpoint(path: str, state_like, result_like, key: str):
+    """(state, results list, block) or None if absent / for another variant / unreadable."""
+    if not os.path.exists(path):
+        return None
+    try:
+        with np.load(path) as z:
+            meta = json.loads(bytes(z["meta"]).decode())
+            if meta.get("key") != key:
+                return None
+            s_leaves, s_def = jax.tree_util.tree_flatten(state_like)
+            r_leaves, r_def = jax.tree_util.tree_flatten(result_like)
+            state = jax.tree_util.tree_unflatten(
+                s_def, [jnp.asarray(z[f"s{i}"]) for i in range(len(s_leaves))])
+            stacked = [z[f"r{i}"] for i in range(len(r_leaves))]
+    except Exception as err:  # a corrupt checkpoint is ignored (the run restarts), not trusted
+        print(f"warning: ignoring unreadable checkpoint {path}: {err}")
+        return None
+    n_done = stacked[0].shape[1]
+    results = [jax.tree_util.tree_unflatten(r_def, [a[:, j] for a in stacked])
+               for j in range(n_done)]
+    return state, results, int(meta["block"])
+
+
+def run_variant(variant: Variant, seeds: List[int], out_dir: str, *, base_seed: int = 0,
+                seed_batch: int = 8, progress: bool = True,
+                on_block: Optional[Callable[[int], None]] = None) -> Dict[str, Any]:
+    """Run (or resume, or load) one variant over ``seeds``. Returns its result record.
+
+    The record holds, per evaluation (block 0 = after phase 1): ``points`` and ``episodes``
+    (seeds, blocks+1) and ``mean_steps``/``success_rate`` (seeds, blocks+1).
+    """
+    key = variant_key(variant, seeds, base_seed)
+    cache_dir = os.path.join(out_dir, "cache")
+    result_path = os.path.join(cache_dir, f"{key}.json")
+    if os.path.exists(result_path):
+        with open(result_path) as f:
+            record = json.load(f)
+        if record.get("complete"):
+            if progress:
+                print(f"  {variant.label}: cached result {result_path}")
+            return record
+
+    env, config, train, info = build_variant(variant)
+    init = jax.jit(jax.vmap(train.init))
+    run_block = jax.jit(jax.vmap(train.run_block), donate_argnums=0)
+    n_blocks = variant.run.n_blocks
+    batches = [seeds[i:i + seed_batch] for i in range(0, len(seeds), seed_batch)]
+    per_batch: List[Dict[str, np.ndarray]] = []
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=len(batches) * (n_blocks + 1), desc=f"  {variant.label}",
+                   unit="eval", leave=True)
+    for b, batch in enumerate(batches):
+        batch_key = variant_key(variant, batch, base_seed)
+        batch_path = os.path.join(cache_dir, f"batch-{batch_key}.json")
+        if os.path.exists(batch_path):
+            with open(batch_path) as f:
+                per_batch.append({k: np.asarray(v) for k, v in json.load(f).items()})
+            if bar is not None:
+                bar.update(n_blocks + 1)
+            continue
+        ckpt_path = os.path.join(cache_dir, f"ckpt-{batch_key}.npz")
+        keys = jnp.stack([jax.random.fold_in(jax.random.PRNGKey(base_seed), s) for s in batch])
+        state_like, first_like = jax.eval_shape(init, keys)
+        resumed = _load_checkpoint(ckpt_path, state_like, first_like, batch_key)
+        if resumed is None:
+            state, first = init(keys)
+            memory_check(state.memory)
+            results = [first]
+            done = 0
+            _save_checkpoint(ckpt_path, state, results, done, batch_key)
+        else:
+            state, results, done = resumed
+        if bar is not None:
+            bar.update(done + 1)
+        for blk in range(done, n_blocks):
+            state, res = run_block(state)
+            memory_check(state.memory)
+            results.append(res)
+            _save_checkpoint(ckpt_path, state, results, blk + 1, batch_key)
+            if bar is not None:
+                bar.set_postfix(steps=f"{float(np.mean(res.evaluation.mean_steps)):.1f}")
+                bar.update(1)
+            if on_block is not None:
+                on_block(blk + 1)
+        stacked = jax.tree_util.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs], 1),
+                                         *results)
+        arrays = {
+            "points": stacked.points, "episodes": stacked.episodes,
+            "mean_steps": stacked.evaluation.mean_steps,
+            "success_rate": stacked.evaluation.success_rate,
+            "train_steps_mean": stacked.train_steps_mean,
+            "memory_size": stacked.memory_size,
+        }
+        atomic_write_json(batch_path, {k: np.asarray(v).tolist() for k, v in arrays.items()})
+        per_batch.append(arrays)
+        if os.path.exists(ckpt_path):
+            os.unlink(ckpt_path)
+    if bar is not None:
+        bar.close()
+    merged = {k: np.concatenate([np.asarray(p[k]) for p in per_batch], 0).tolist()
+              for k in per_batch[0]}
+    record = {
+        "label": variant.label, "env": variant.env, "x_axis": variant.x_axis,
+        "seeds": seeds, "base_seed": base_seed, "phase1": variant.phase1, "phase1_info": info,
+        "hedger_config": {k: v for k, v in dataclasses.asdict(config).items()},
+        "run_config": dataclasses.asdict(variant.run),
+        "versions": versions(), "complete": True, **merged,
+    }
+    atomic_write_json(result_path, record)
+    return record
+
+
+def versions() -> Dict[str, str]:
+    import platform
+
+    import gymnasium
+
+    return {"hedger_jax": hedger_jax.__version__, "jax": jax.__version__,
+            "numpy": np.__version__, "gymnasium": gymnasium.__version__,
+            "python": platform.python_version(), "backend": jax.default_backend()}
