@@ -1,0 +1,254 @@
+"""Greedy action search: discrete argmax, random action when nothing is known, the 1-D
+parabolic-interpolation search (maximise_1d) and the continuous greedy action."""
+import functools
+import os
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+from hedger_jax import (HedgerConfig, add_points, greedy_action, greedy_value,  # noqa: E402
+                        init_memory, predict)
+from hedger_jax.greedy import maximise_1d  # noqa: E402
+from hedger_np_ref import default_k_thresh, f32, ref_predict  # noqa: E402
+
+N_KEYS = 24
+KEYS = jax.random.split(jax.random.PRNGKey(0), N_KEYS)
+KEYS8 = KEYS[:8]  # the one batch size used for the continuous search (one compilation)
+
+# ------------------------------------------------------------------ discrete
+ACTS = ((-1.0,), (0.0,), (1.0,))
+CFG_D = HedgerConfig(2, 1, capacity=128, bandwidth=0.1, max_neighbours=16, discrete_actions=ACTS,
+                     default_value=0.0)
+_greedy_d = jax.jit(jax.vmap(functools.partial(greedy_action, CFG_D), in_axes=(None, None, 0)))
+_gvalue_d = jax.jit(functools.partial(greedy_value, CFG_D))
+
+
+def _ref(cfg, Z, V, zq):
+    return ref_predict(Z, V, len(Z), zq, bandwidth=cfg.bandwidth,
+                       k_thresh=default_k_thresh(cfg.bandwidth, cfg.min_weight),
+                       k_min=cfg.k_min, max_neighbours=cfg.max_neighbours,
+                       default_value=cfg.default_value, use_ivh=cfg.use_ivh,
+                       ivh_tol=cfg.ivh_tol)
+
+
+def _discrete_memory(values_per_action, seed=0, n_per=40, which=(0, 1, 2)):
+    """States uniform in [0.4, 0.6]^2; actions exactly the discrete values (a degenerate
+    action column in every neighbourhood, as with mountain car's raw {-1, 0, 1})."""
+    rng = np.random.default_rng(seed)
+    S, A, V = [], [], []
+    for i in which:
+        s = f32(rng.uniform(0.4, 0.6, (n_per, 2)))
+        S.append(s)
+        A.append(f32(np.full((n_per, 1), ACTS[i][0])))
+        V.append(f32(values_per_action[i](s.astype(np.float64))))
+    S, A, V = np.concatenate(S), np.concatenate(A), np.concatenate(V)
+    return S, A, V, add_points(CFG_D, init_memory(CFG_D), S, A, V)
+
+
+def test_discrete_argmax_picks_clearly_best_action():
+    fns = (lambda s: 0.2 + 0 * s[:, 0], lambda s: 0.5 + 0.05 * s[:, 1],
+           lambda s: 1.0 + 0.1 * s[:, 0])
+    S, A, V, mem = _discrete_memory(fns)
+    s = f32([0.5, 0.48])
+    acts, vals, known = _greedy_d(mem, jnp.asarray(s), KEYS)
+    np.testing.assert_array_equal(np.asarray(acts), np.ones((N_KEYS, 1), np.float32))
+    assert np.all(np.asarray(known))
+    Z = np.concatenate([S, A], 1).astype(np.float64)
+    refs = [_ref(CFG_D, Z, V, np.concatenate([s, a]).astype(np.float64)) for a in ACTS]
+    assert all(r.known and not r.ambiguous for r in refs)
+    np.testing.assert_allclose([r.value for r in refs], [0.2, 0.5 + 0.05 * 0.48, 1.05],
+                               rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(vals), refs[2].value, rtol=1e-4)
+    gv, gk = _gvalue_d(mem, jnp.asarray(s))
+    assert bool(gk)
+    assert float(gv) == pytest.approx(refs[2].value, rel=1e-4)
+    # each candidate's prediction, through predict, matches the reference (degenerate column)
+    for a, r in zip(ACTS, refs):
+        v, k, n = predict(CFG_D, mem, jnp.asarray(s), jnp.asarray(f32(a)))
+        assert bool(k) and int(n) == r.n
+        assert float(v) == pytest.approx(r.value, rel=1e-4)
+
+
+def test_discrete_argmax_middle_action():
+    fns = (lambda s: 0.3 - s[:, 0], lambda s: 0.9 + 0 * s[:, 0], lambda s: 0.1 + s[:, 1])
+    S, A, V, mem = _discrete_memory(fns, seed=1)
+    acts, vals, known = _greedy_d(mem, jnp.asarray(f32([0.45, 0.55])), KEYS)
+    np.testing.assert_array_equal(np.asarray(acts), np.zeros((N_KEYS, 1), np.float32))
+    np.testing.assert_allclose(np.asarray(vals), 0.9, rtol=1e-4)
+
+
+def test_all_unknown_discrete_is_random_and_unknown():
+    mem = init_memory(CFG_D)
+    acts, vals, known = _greedy_d(mem, jnp.asarray(f32([0.5, 0.5])), KEYS)
+    acts = np.asarray(acts)[:, 0]
+    assert not np.any(np.asarray(known))
+    assert set(acts.tolist()) <= {-1.0, 0.0, 1.0}
+    assert len(set(acts.tolist())) == 3  # 24 uniform draws over 3 actions
+    gv, gk = _gvalue_d(mem, jnp.asarray(f32([0.5, 0.5])))
+    assert not bool(gk) and float(gv) == CFG_D.default_value
+
+
+def test_unknown_candidates_count_as_default_value():
+    """Only a = +1 is known, with value -1 < default 0: the greedy choice is one of the unknown
+    actions (tie at the default, broken at random), never +1."""
+    fns = (None, None, lambda s: -1.0 + 0 * s[:, 0])
+    S, A, V, mem = _discrete_memory(fns, which=(2,))
+    s = jnp.asarray(f32([0.5, 0.5]))
+    v, k, _ = predict(CFG_D, mem, s, jnp.asarray(f32([1.0])))
+    assert bool(k) and float(v) == pytest.approx(-1.0, rel=1e-5)
+    acts, vals, known = _greedy_d(mem, s, KEYS)
+    acts = np.asarray(acts)[:, 0]
+    assert set(acts.tolist()) == {-1.0, 0.0}
+    np.testing.assert_allclose(np.asarray(vals), 0.0, atol=1e-7)
+    gv, _ = _gvalue_d(mem, s)
+    assert float(gv) == pytest.approx(0.0, abs=1e-7)
+
+
+def test_greedy_action_key_dependence_only_for_ties():
+    fns = (lambda s: 0.2 + 0 * s[:, 0], lambda s: 0.5 + 0 * s[:, 0], lambda s: 1.0 + 0 * s[:, 0])
+    _, _, _, mem = _discrete_memory(fns, seed=2)
+    a1 = greedy_action(CFG_D, mem, jnp.asarray(f32([0.5, 0.5])), jax.random.PRNGKey(1))
+    a2 = greedy_action(CFG_D, mem, jnp.asarray(f32([0.5, 0.5])), jax.random.PRNGKey(2))
+    assert float(a1[0][0]) == float(a2[0][0]) == 1.0
+    assert a1[0].shape == (1,) and a1[1].shape == () and a1[2].shape == ()
+
+
+# ------------------------------------------------------------------ maximise_1d
+def _max1d(f, low, high, n=11, iters=8, tol=1e-3):
+    return maximise_1d(f, low, high, n, iters, tol)
+
+
+@functools.partial(jax.jit, static_argnums=(1, 2))
+def _max_cosh(c, low, high):
+    return _max1d(lambda x: -jnp.cosh(2.0 * (x - c)), low, high)
+
+
+@functools.partial(jax.jit, static_argnums=(1, 2))
+def _max_skew(c, low, high):
+    # smooth, concave, asymmetric: -exp(x - c) - 3 exp(-(x - c)/3) + const, max at x = c
+    return _max1d(lambda x: 4.0 - jnp.exp(x - c) - 3.0 * jnp.exp(-(x - c) / 3.0), low, high)
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.floats(-1.5, 1.5, allow_nan=False, width=32))
+def test_maximise_1d_finds_maximum_of_smooth_concave_function(c):
+    x, fx = _max_cosh(jnp.float32(c), -1.0, 1.0)
+    x, fx = float(x), float(fx)
+    want = min(max(c, -1.0), 1.0)
+    assert -1.0 <= x <= 1.0
+    assert abs(x - want) <= 5e-3, (c, x)
+    assert fx == pytest.approx(-np.cosh(2.0 * (x - c)), rel=1e-5)
+    assert fx >= -np.cosh(2.0 * (want - c)) - 1e-4
+
+
+@pytest.mark.parametrize("c", [0.37, -0.81, 0.0, 0.999])
+def test_maximise_1d_asymmetric_function(c):
+    x, fx = _max_skew(jnp.float32(c), -1.0, 1.0)
+    assert -1.0 <= float(x) <= 1.0
+    assert abs(float(x) - c) <= 5e-3, (c, float(x))
+
+
+@pytest.mark.parametrize("c, want", [(3.0, 1.0), (-2.5, -1.0), (1.2, 1.0), (1.02, 1.0)])
+def test_maximise_1d_maximum_at_a_bound_stays_in_bounds(c, want):
+    x, fx = _max_skew(jnp.float32(c), -1.0, 1.0)
+    assert -1.0 <= float(x) <= 1.0
+    assert float(x) == pytest.approx(want, abs=2e-3)
+
+
+def test_maximise_1d_other_interval_and_linear():
+    x, _ = _max_cosh(jnp.float32(2.7), 2.0, 5.0)
+    assert float(x) == pytest.approx(2.7, abs=5e-3)
+    x, fx = jax.jit(lambda: _max1d(lambda x: 2.0 * x + 1.0, -0.5, 0.25))()
+    assert -0.5 <= float(x) <= 0.25 and float(x) == pytest.approx(0.25, abs=1e-6)
+    assert float(fx) == pytest.approx(1.5, rel=1e-6)
+    x, _ = _max1d(lambda x: -(x - 0.123) ** 2, -1.0, 1.0)  # unjitted
+    assert float(x) == pytest.approx(0.123, abs=1e-3)
+
+
+# ------------------------------------------------------------------ continuous greedy
+CFG_C = HedgerConfig(1, 1, capacity=256, bandwidth=0.1, max_neighbours=32, action_low=(-1.0,),
+                     action_high=(1.0,), greedy_samples=11, greedy_iters=8, greedy_tol=1e-3)
+_greedy_c = jax.jit(jax.vmap(functools.partial(greedy_action, CFG_C), in_axes=(None, None, 0)))
+_gvalue_c = jax.jit(functools.partial(greedy_value, CFG_C))
+_add_c = jax.jit(functools.partial(add_points, CFG_C))
+_pred_c = jax.jit(functools.partial(predict, CFG_C))
+
+
+def _continuous_memory(q_fn, seed=0):
+    """A jittered grid: s in {0.42..0.58} (5 rows), a in [-1, 1] step 0.04 (51 columns)."""
+    rng = np.random.default_rng(seed)
+    ss = np.linspace(0.42, 0.58, 5)
+    aa = np.linspace(-1.0, 1.0, 51)
+    G = np.array([[s, a] for s in ss for a in aa])
+    G[:, 0] += rng.uniform(-0.002, 0.002, len(G))
+    G[1:-1, 1] += rng.uniform(-0.002, 0.002, len(G) - 2)
+    G[:, 1] = np.clip(G[:, 1], -1.0, 1.0)
+    Z = f32(G)
+    V = f32(q_fn(Z[:, 0].astype(np.float64), Z[:, 1].astype(np.float64)))
+    return Z, V, _add_c(init_memory(CFG_C), Z[:, :1], Z[:, 1:], V)
+
+
+def test_continuous_greedy_near_argmax_of_quadratic_q():
+    Z, V, mem = _continuous_memory(lambda s, a: 1.0 - (a - 0.3) ** 2 + 0.1 * s)
+    s0 = f32([0.5])
+    acts, vals, known = _greedy_c(mem, jnp.asarray(s0), KEYS8)
+    acts, vals = np.asarray(acts)[:, 0], np.asarray(vals)
+    assert np.all(np.asarray(known))
+    assert np.all((acts >= -1.0) & (acts <= 1.0))
+    assert np.all(np.abs(acts - 0.3) <= 0.03), acts
+    assert np.all(acts == acts[0])  # deterministic when known
+    # value reported = the model's prediction at the returned action
+    v, k, _ = _pred_c(mem, jnp.asarray(s0), jnp.asarray(f32([acts[0]])))
+    assert bool(k) and float(v) == pytest.approx(float(vals[0]), rel=1e-5)
+    # ... which is the reference's prediction there, and close to the reference's max
+    grid = np.linspace(-1, 1, 401)
+    refs = [_ref(CFG_C, Z, V, np.array([0.5, a])) for a in grid]
+    ref_max = max(r.value for r in refs if r.known)
+    r_at = _ref(CFG_C, Z, V, np.array([0.5, float(acts[0])]))
+    assert r_at.known and float(vals[0]) == pytest.approx(r_at.value, rel=2e-4)
+    assert float(vals[0]) >= ref_max - 1e-3
+    gv, gk = _gvalue_c(mem, jnp.asarray(s0))
+    assert bool(gk) and float(gv) == pytest.approx(float(vals[0]), rel=1e-5)
+
+
+def test_continuous_greedy_increasing_q_goes_to_upper_bound():
+    Z, V, mem = _continuous_memory(lambda s, a: 0.5 + 0.4 * a + 0.1 * s, seed=1)
+    acts, vals, known = _greedy_c(mem, jnp.asarray(f32([0.5])), KEYS8)
+    a = np.asarray(acts)[:, 0]
+    assert np.all(np.asarray(known))
+    assert np.all((a <= 1.0) & (a >= 0.97)), a
+    np.testing.assert_allclose(np.asarray(vals), 0.5 + 0.4 * a + 0.05, rtol=1e-3)
+
+
+def test_continuous_greedy_decreasing_q_goes_to_lower_bound():
+    Z, V, mem = _continuous_memory(lambda s, a: 0.5 - 0.4 * a ** 3 - 0.2 * a, seed=2)
+    acts, vals, known = _greedy_c(mem, jnp.asarray(f32([0.5])), KEYS8)
+    a = np.asarray(acts)[:, 0]
+    assert np.all(np.asarray(known))
+    assert np.all((a >= -1.0) & (a <= -0.97)), a
+
+
+def test_all_unknown_continuous_is_uniform_random_in_box():
+    mem = init_memory(CFG_C)
+    acts, vals, known = _greedy_c(mem, jnp.asarray(f32([0.5])), KEYS8)
+    a = np.asarray(acts)[:, 0]
+    assert not np.any(np.asarray(known))
+    assert np.all((a >= -1.0) & (a <= 1.0))
+    assert len(np.unique(a)) >= 7
+    assert a.min() < -0.2 and a.max() > 0.2  # spread over the box
+    gv, gk = _gvalue_c(mem, jnp.asarray(f32([0.5])))
+    assert not bool(gk) and float(gv) == CFG_C.default_value
+
+
+def test_continuous_greedy_state_outside_memory_is_random():
+    """Known at s = 0.5, unknown at s = 0.9 (no neighbours there)."""
+    Z, V, mem = _continuous_memory(lambda s, a: 1.0 - (a - 0.3) ** 2, seed=3)
+    acts, _, known = _greedy_c(mem, jnp.asarray(f32([0.9])), KEYS8)
+    assert not np.any(np.asarray(known))
+    assert len(np.unique(np.asarray(acts))) >= 7

@@ -1,0 +1,173 @@
+"""The fixed-capacity Memory pytree: init, bulk insert, flags, full policies, masking."""
+import functools
+import os
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+from hedger_jax import (HedgerConfig, MemoryFullError, NonFiniteValueError, add_points,  # noqa: E402
+                        init_memory, memory_check, predict, predict_detailed)
+from hedger_np_ref import f32, replace_fields  # noqa: E402
+
+FLAG_FULL = 1
+FLAG_NONFINITE = 2
+
+CFG = HedgerConfig(2, 1, capacity=8, bandwidth=0.1)
+CFG_RING = HedgerConfig(2, 1, capacity=4, bandwidth=0.1, full_policy="overwrite_oldest")
+CFG_MASK = HedgerConfig(1, 1, capacity=16, bandwidth=0.1, max_neighbours=8)
+
+_add_jit = jax.jit(functools.partial(add_points, CFG))
+_pd_mask = jax.jit(functools.partial(predict_detailed, CFG_MASK))
+
+
+def _data(n, seed=0, dim_s=2, dim_a=1):
+    rng = np.random.default_rng(seed)
+    return (f32(rng.uniform(0, 1, (n, dim_s))), f32(rng.uniform(-1, 1, (n, dim_a))),
+            f32(rng.standard_normal(n)))
+
+
+def _np(mem):
+    return {k: np.asarray(getattr(mem, k)) for k in ("points", "values", "size", "head", "flags")}
+
+
+def test_init_memory_shapes_and_dtypes():
+    m = init_memory(CFG)
+    assert m.points.shape == (3, 8) and m.points.dtype == jnp.float32
+    assert m.values.shape == (8,) and m.values.dtype == jnp.float32
+    for f in ("size", "head", "flags"):
+        x = getattr(m, f)
+        assert x.shape == () and x.dtype == jnp.int32 and int(x) == 0
+    assert len(jax.tree_util.tree_leaves(m)) >= 5  # a pytree of arrays
+
+
+def test_add_points_stores_columns_and_counts():
+    s, a, v = _data(5)
+    m = add_points(CFG, init_memory(CFG), s, a, v)
+    np.testing.assert_array_equal(np.asarray(m.points)[:, :5], np.concatenate([s, a], 1).T)
+    np.testing.assert_array_equal(np.asarray(m.values)[:5], v)
+    assert int(m.size) == 5 and int(m.head) == 5 and int(m.flags) == 0
+    s2, a2, v2 = _data(2, seed=1)
+    m2 = add_points(CFG, m, s2, a2, v2)
+    assert int(m2.size) == 7 and int(m2.head) == 7 and int(m2.flags) == 0
+    np.testing.assert_array_equal(np.asarray(m2.points)[:, :5], np.asarray(m.points)[:, :5])
+    np.testing.assert_array_equal(np.asarray(m2.points)[:, 5:7], np.concatenate([s2, a2], 1).T)
+    np.testing.assert_array_equal(np.asarray(m2.values)[5:7], v2)
+    memory_check(m2)  # clean memory: no exception
+
+
+def test_add_points_jitted_equals_unjitted():
+    s, a, v = _data(3, seed=4)
+    m0 = add_points(CFG, init_memory(CFG), s[:1], a[:1], v[:1])
+    mj = _add_jit(m0, s, a, v)
+    mu = add_points(CFG, m0, s, a, v)
+    for k, x in _np(mj).items():
+        np.testing.assert_array_equal(x, _np(mu)[k], err_msg=k)
+
+
+def test_full_memory_error_policy_keeps_data_and_flags():
+    s, a, v = _data(8, seed=2)
+    m = add_points(CFG, init_memory(CFG), s, a, v)
+    assert int(m.size) == 8 and int(m.flags) == 0
+    memory_check(m)  # exactly full is not an error
+    before = _np(m)
+    s2, a2, v2 = _data(3, seed=3)
+    m2 = add_points(CFG, m, s2, a2, v2)
+    after = _np(m2)
+    np.testing.assert_array_equal(after["points"], before["points"])
+    np.testing.assert_array_equal(after["values"], before["values"])
+    assert int(m2.size) == 8
+    assert int(m2.flags) & FLAG_FULL
+    with pytest.raises(MemoryFullError):
+        memory_check(m2)
+    # also under jit
+    m3 = _add_jit(m, s2, a2, v2)
+    np.testing.assert_array_equal(np.asarray(m3.points), before["points"])
+    np.testing.assert_array_equal(np.asarray(m3.values), before["values"])
+    assert int(m3.flags) & FLAG_FULL
+
+
+def test_partial_overflow_keeps_existing_data():
+    s, a, v = _data(6, seed=5)
+    m = add_points(CFG, init_memory(CFG), s, a, v)
+    s2, a2, v2 = _data(4, seed=6)
+    m2 = add_points(CFG, m, s2, a2, v2)
+    np.testing.assert_array_equal(np.asarray(m2.points)[:, :6], np.asarray(m.points)[:, :6])
+    np.testing.assert_array_equal(np.asarray(m2.values)[:6], v)
+    assert 6 <= int(m2.size) <= 8
+    assert int(m2.flags) & FLAG_FULL
+    with pytest.raises(MemoryFullError):
+        memory_check(m2)
+
+
+def test_nonfinite_value_sets_flag():
+    s, a, v = _data(3, seed=7)
+    v = v.copy()
+    v[1] = np.nan
+    m = add_points(CFG, init_memory(CFG), s, a, v)
+    assert int(m.flags) & FLAG_NONFINITE
+    assert not int(m.flags) & FLAG_FULL
+    with pytest.raises(NonFiniteValueError):
+        memory_check(m)
+    v[1] = np.inf
+    m = _add_jit(init_memory(CFG), s, a, v)
+    assert int(m.flags) & FLAG_NONFINITE
+
+
+def test_error_classes_are_exceptions():
+    assert issubclass(MemoryFullError, Exception)
+    assert issubclass(NonFiniteValueError, Exception)
+
+
+def test_overwrite_oldest_is_a_ring_buffer():
+    s, a, v = _data(6, seed=8)
+    m = add_points(CFG_RING, init_memory(CFG_RING), s[:4], a[:4], v[:4])
+    assert int(m.size) == 4 and int(m.head) % 4 == 0
+    m = add_points(CFG_RING, m, s[4:5], a[4:5], v[4:5])
+    m = add_points(CFG_RING, m, s[5:6], a[5:6], v[5:6])
+    assert int(m.size) == 4 and int(m.head) == 2 and int(m.flags) == 0
+    memory_check(m)
+    z = np.concatenate([s, a], 1)
+    expect_order = [4, 5, 2, 3]
+    np.testing.assert_array_equal(np.asarray(m.points), z[expect_order].T)
+    np.testing.assert_array_equal(np.asarray(m.values), v[expect_order])
+
+
+def test_overwrite_oldest_bulk_insert_wraps():
+    s, a, v = _data(7, seed=9)
+    m = add_points(CFG_RING, init_memory(CFG_RING), s[:3], a[:3], v[:3])
+    m = add_points(CFG_RING, m, s[3:7], a[3:7], v[3:7])  # 3 + 4 = 7 > 4
+    z = np.concatenate([s, a], 1)
+    expect_order = [4, 5, 6, 3]
+    assert int(m.size) == 4 and int(m.head) == 3 and int(m.flags) == 0
+    np.testing.assert_array_equal(np.asarray(m.points), z[expect_order].T)
+    np.testing.assert_array_equal(np.asarray(m.values), v[expect_order])
+
+
+def test_empty_slots_never_become_neighbours():
+    cfg = CFG_MASK
+    m = init_memory(cfg)
+    zq = np.array([0.0, 0.0], np.float32)  # the origin: where zero-initialised slots sit
+    v, k, n = predict(cfg, m, jnp.asarray(zq[:1]), jnp.asarray(zq[1:]))
+    assert int(n) == 0 and not bool(k) and float(v) == cfg.default_value
+    # five real points near the origin
+    pts = f32([[0.01, 0.0], [-0.01, 0.01], [0.0, -0.01], [0.02, 0.02], [-0.02, -0.015]])
+    m = add_points(cfg, m, pts[:, :1], pts[:, 1:], f32(np.full(5, 3.0)))
+    p = _pd_mask(m, jnp.asarray(zq[:1]), jnp.asarray(zq[1:]))
+    mask = np.asarray(p.mask)
+    assert int(p.n_neighbours) == 5 and int(mask.sum()) == 5
+    assert set(np.asarray(p.indices)[mask].tolist()) == {0, 1, 2, 3, 4}
+    assert bool(p.known) and float(p.value) == pytest.approx(3.0, rel=1e-5)
+    # garbage beyond `size` (slots 5..9 right on the query with a wild value) is ignored
+    pts2 = f32(np.zeros((5, 2)))
+    m2 = add_points(cfg, m, pts2[:, :1], pts2[:, 1:], f32(np.full(5, -1000.0)))
+    m2 = replace_fields(m2, size=jnp.int32(5), head=jnp.int32(5))
+    p2 = _pd_mask(m2, jnp.asarray(zq[:1]), jnp.asarray(zq[1:]))
+    mask2 = np.asarray(p2.mask)
+    assert int(p2.n_neighbours) == 5
+    assert set(np.asarray(p2.indices)[mask2].tolist()) == {0, 1, 2, 3, 4}
+    assert float(p2.value) == pytest.approx(3.0, rel=1e-5)
