@@ -207,7 +207,7 @@ def test_continuous_greedy_near_argmax_of_quadratic_q():
     v, k, _ = _pred_c(mem, jnp.asarray(s0), jnp.asarray(f32([acts[0]])))
     assert bool(k) and float(v) == pytest.approx(float(vals[0]), rel=1e-5)
     # ... which is the reference's prediction there, and close to the reference's max
-    grid = np.linspace(-1, 1, 401)
+    grid = np.linspace(-1, 1, 201)
     refs = [_ref(CFG_C, Z, V, np.array([0.5, a])) for a in grid]
     ref_max = max(r.value for r in refs if r.known)
     r_at = _ref(CFG_C, Z, V, np.array([0.5, float(acts[0])]))

@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from hypothesis import given, settings, strategies as st
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
@@ -304,3 +305,45 @@ def test_max_neighbours_keeps_the_nearest():
     d = np.linalg.norm(Z.astype(np.float64) - zq, axis=1)
     assert got == sorted(np.argsort(d)[:16].tolist())
     assert int(out.n_neighbours[0]) == 16
+
+
+def test_ivh_tol_widens_the_hull(cloud):
+    """(1 + ivh_tol) scales the hull's bound: a mildly extrapolated query becomes known."""
+    Z, V, mem = cloud
+    cfg = HedgerConfig(1, 1, capacity=128, bandwidth=0.1, k_min=4, max_neighbours=64,
+                       default_value=-7.5, ivh_tol=0.9)
+    f = jax.jit(functools.partial(predict, cfg))
+    for zq, want in (([0.65, 0.5], True), ([0.7, 0.5], False)):
+        zq = np.array(zq)
+        r = _ref(cfg, Z, V, len(Z), zq)
+        assert r.known == want and not r.ambiguous
+        v, k, n = _q(f, mem, zq)
+        assert k == want
+        if want:
+            assert v == pytest.approx(r.value, rel=1e-4, abs=1e-4)
+        else:
+            assert v == cfg.default_value
+
+
+@settings(max_examples=12, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(5, 256),
+       spread=st.sampled_from([0.05, 0.2, 0.5]))
+def test_random_clouds_match_reference_property(seed, n, spread):
+    rng = np.random.default_rng(seed)
+    Z = f32(rng.uniform(0.0, spread, size=(n, 3)))
+    V = f32(rng.standard_normal() + Z.astype(np.float64) @ rng.standard_normal(3)
+            + 0.1 * rng.standard_normal(n))
+    mem = _memory(CFG_R, Z, V)
+    Q = f32(rng.uniform(-0.1 * spread, 1.1 * spread, size=(96, 3)))
+    out = _batch_predict_R(mem, jnp.asarray(Q[:, :2]), jnp.asarray(Q[:, 2:]))
+    for j, zq in enumerate(Q):
+        r = _ref(CFG_R, Z, V, n, zq.astype(np.float64))
+        if r.ambiguous:
+            continue
+        assert bool(out[1][j]) == r.known, (j, r)
+        assert int(out[2][j]) == r.n
+        if r.known:
+            scale = float(np.max(np.abs(V[r.idx])))
+            assert float(out[0][j]) == pytest.approx(r.value, rel=2e-4, abs=2e-4 * scale), j
+        else:
+            assert float(out[0][j]) == CFG_R.default_value

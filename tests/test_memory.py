@@ -11,7 +11,7 @@ import pytest
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 from hedger_jax import (HedgerConfig, MemoryFullError, NonFiniteValueError, add_points,  # noqa: E402
-                        init_memory, memory_check, predict, predict_detailed)
+                        init_memory, memory_check, predict_detailed)
 from hedger_np_ref import f32, replace_fields  # noqa: E402
 
 FLAG_FULL = 1
@@ -152,8 +152,9 @@ def test_empty_slots_never_become_neighbours():
     cfg = CFG_MASK
     m = init_memory(cfg)
     zq = np.array([0.0, 0.0], np.float32)  # the origin: where zero-initialised slots sit
-    v, k, n = predict(cfg, m, jnp.asarray(zq[:1]), jnp.asarray(zq[1:]))
-    assert int(n) == 0 and not bool(k) and float(v) == cfg.default_value
+    p0 = _pd_mask(m, jnp.asarray(zq[:1]), jnp.asarray(zq[1:]))
+    assert int(p0.n_neighbours) == 0 and not bool(p0.known)
+    assert float(p0.value) == cfg.default_value and not np.any(np.asarray(p0.mask))
     # five real points near the origin
     pts = f32([[0.01, 0.0], [-0.01, 0.01], [0.0, -0.01], [0.02, 0.02], [-0.02, -0.015]])
     m = add_points(cfg, m, pts[:, :1], pts[:, 1:], f32(np.full(5, 3.0)))
@@ -171,3 +172,16 @@ def test_empty_slots_never_become_neighbours():
     assert int(p2.n_neighbours) == 5
     assert set(np.asarray(p2.indices)[mask2].tolist()) == {0, 1, 2, 3, 4}
     assert float(p2.value) == pytest.approx(3.0, rel=1e-5)
+
+
+def test_prediction_arrays_have_max_neighbours_entries_even_when_capacity_is_smaller():
+    """The API: indices/weights/mask are (max_neighbours,) whatever the capacity."""
+    cfg = HedgerConfig(1, 1, capacity=6, bandwidth=0.1, max_neighbours=10)
+    pts = f32([[0.01, 0.0], [-0.01, 0.01], [0.0, -0.01], [0.02, 0.02], [-0.02, -0.015]])
+    m = add_points(cfg, init_memory(cfg), pts[:, :1], pts[:, 1:], f32(np.full(5, 3.0)))
+    p = predict_detailed(cfg, m, jnp.zeros((1,), jnp.float32), jnp.zeros((1,), jnp.float32))
+    assert bool(p.known) and int(p.n_neighbours) == 5
+    assert float(p.value) == pytest.approx(3.0, rel=1e-5)
+    mask = np.asarray(p.mask)
+    assert set(np.asarray(p.indices)[mask].tolist()) == {0, 1, 2, 3, 4}
+    assert p.indices.shape == p.weights.shape == p.mask.shape == (10,)

@@ -13,7 +13,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 from hedger_jax import (HedgerConfig, Transition, add_points, greedy_action,  # noqa: E402
                         init_memory, predict, predict_detailed, train_step)
-from hedger_np_ref import default_k_thresh, f32, ref_predict  # noqa: E402
+from hedger_np_ref import f32, ref_predict  # noqa: E402
 
 # ------------------------------------------------------------------ batching
 CFG_V = HedgerConfig(2, 1, capacity=64, bandwidth=0.15, max_neighbours=16,
