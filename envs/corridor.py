@@ -24,9 +24,11 @@ Unicycle kinematics with the mechanical realities the paper names:
   first-order lag with time constant ``tau_omega``; the forward speed ``v`` follows its command
   through a first-order lag with time constant ``tau_v``. A single step of full command
   therefore changes the heading by at most ``(1 - exp(-dt/tau_omega)) * w_max * dt``
-  (~0.09 rad with the defaults): one random action has little visible effect.
+  (~0.05 rad with the defaults) and the lateral offset by under a centimetre: one random
+  action has little visible effect, only sustained commands steer the robot.
 * Forward speed is set by a **fixed policy** (not learned): cruise at ``v_cruise`` but slow down
-  when turning hard, ``v_cmd = v_cruise * (1 - turn_slowdown * min(|omega| / w_max, 1))``
+  when asked to turn hard, ``v_cmd = v_cruise * (1 - turn_slowdown * min(|u_eff| / w_max, 1))``
+  (on the commanded rotation; the speed itself then follows ``v_cmd`` through its lag)
   (the robot does not slow down near the end: the episode ends at the goal line, well before
   the end wall). The robot starts every episode at rest (``v = omega = 0``).
 * Pose update: ``theta' = theta + omega' dt``, ``(x, y) += v' dt (cos, sin)(theta + omega' dt/2)``.
@@ -79,10 +81,12 @@ Starts
 Calibration (``CorridorParams()`` defaults, measured on ``EVAL_STARTS`` with the laser observation)
 ------------------------------------------------------------------------------------------------
 Corridor 11 m long (10 m from the start line to the goal line), 2.0 m wide, robot radius 0.25 m,
-cruise speed 0.5 m/s, |omega| <= 1 rad/s, tau_omega = 0.8 s, tau_v = 0.5 s, dead-band
-0.05 rad/s, turn slow-down 0.6. See ``envs.corridor_controllers`` for the hand-coded
-controller (about 106 steps) and the best-achievable controller (about 70 steps) and how the
-latter was found.
+cruise speed 0.5 m/s (0.15 m per step), |u| <= 1 rad/s, tau_omega = 1.6 s, tau_v = 0.5 s,
+dead-band 0.05 rad/s, turn slow-down 0.4 (60% of cruise speed at a full-rate turn command).
+Laser: 61 beams over 180 degrees, 20 m max range, 2 cm range noise. Measured: hand-coded
+controller about 107 steps (target 106), best-achievable controller 68.7 steps (target 70),
+hard lower bound for any policy 68 steps (``straight_line_lower_bound``). See
+``envs.corridor_controllers`` for the controllers and how the best one was found.
 """
 from __future__ import annotations
 
