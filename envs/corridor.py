@@ -65,7 +65,12 @@ over the two break points minimising the total least-squares line-fit residual (
 O(n_beams^2)); the two side walls are then fitted as parallel lines (the end wall, rotated by
 90 degrees, also informs the direction), giving the corridor angle and the offset; the end-wall
 points projected onto the corridor axis give ``dist`` (the farthest point when no end wall is
-seen). ``geometric_obs(state, params)`` gives the noise-free geometric state and
+seen). The laser angle lies in (-pi/2, pi/2] (a line fit cannot tell which way the corridor
+runs), so it is only meaningful while the robot faces the dead end (|theta| < pi/2), which
+covers every state a sensible policy visits. Measured errors with 2 cm range noise: angle
+within 0.015 rad, offset within 0.013 m, dist within 0.04 m (unbiased); noise-free, they agree
+with the geometric state to 1e-6. ``geometric_obs(state, params)`` gives the noise-free
+geometric state and
 ``observation="geometric"`` makes the env return it.
 
 Starts
