@@ -13,6 +13,7 @@ depend on how seeds are batched.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import os
@@ -88,6 +89,16 @@ def build_variant(variant: Variant):
     return env, config, train, info
 
 
+@functools.lru_cache(maxsize=32)
+def compiled_variant(variant: Variant):
+    """(jit(vmap(init)), jit(vmap(run_block)) donating its state, phase-1 info), cached per
+    variant so that repeated and resumed runs in one process compile once per batch size."""
+    _, _, train, info = build_variant(variant)
+    init = jax.jit(jax.vmap(train.init))
+    run_block = jax.jit(jax.vmap(train.run_block), donate_argnums=0)
+    return init, run_block, info
+
+
 def _to_numpy(tree):
     return jax.tree_util.tree_map(lambda x: np.asarray(x), tree)
 
@@ -148,9 +159,7 @@ def run_variant(variant: Variant, seeds: List[int], out_dir: str, *, base_seed: 
                 print(f"  {variant.label}: cached result {result_path}")
             return record
 
-    env, config, train, info = build_variant(variant)
-    init = jax.jit(jax.vmap(train.init))
-    run_block = jax.jit(jax.vmap(train.run_block), donate_argnums=0)
+    init, run_block, info = compiled_variant(variant)
     n_blocks = variant.run.n_blocks
     batches = [seeds[i:i + seed_batch] for i in range(0, len(seeds), seed_batch)]
     per_batch: List[Dict[str, np.ndarray]] = []
@@ -213,12 +222,19 @@ def run_variant(variant: Variant, seeds: List[int], out_dir: str, *, base_seed: 
     record = {
         "label": variant.label, "env": variant.env, "x_axis": variant.x_axis,
         "seeds": seeds, "base_seed": base_seed, "phase1": variant.phase1, "phase1_info": info,
-        "hedger_config": {k: v for k, v in dataclasses.asdict(config).items()},
+        "hedger_config": dataclasses.asdict(config_of(variant)),
         "run_config": dataclasses.asdict(variant.run),
         "versions": versions(), "complete": True, **merged,
     }
     atomic_write_json(result_path, record)
     return record
+
+
+def config_of(variant: Variant) -> HedgerConfig:
+    """The HedgerConfig a variant runs with."""
+    import envs
+
+    return HedgerConfig.for_env(envs.make(variant.env), **variant.hedger_kwargs())
 
 
 def versions() -> Dict[str, str]:

@@ -119,8 +119,12 @@ class BlockResult(NamedTuple):
 
 
 def _success(info: Any, terminated: jax.Array) -> jax.Array:
-    if isinstance(info, dict) and "success" in info:
-        return jnp.asarray(info["success"], bool)
+    """Did the episode reach its goal? ``info["success"]`` or ``info["reached_goal"]`` when the
+    env reports it (a terminal can also be a failure, e.g. a wall), else ``terminated``."""
+    if isinstance(info, dict):
+        for name in ("success", "reached_goal"):
+            if name in info:
+                return jnp.asarray(info[name], bool)
     return jnp.asarray(terminated, bool)
 
 

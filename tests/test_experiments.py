@@ -1,0 +1,145 @@
+"""The experiments layer: resumable seed-batched runs, result files, statistics, plots, CLI."""
+import json
+import os
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from experiments import runner
+from experiments.figures import FIGURES, Variant, _items, build_figure
+from experiments.stats import mean_ci, welch_p
+from experiments.summary import figure_summary
+from hedger_jax.agent import RunConfig
+
+TINY = Variant(
+    label="tiny",
+    env="mountain_car_discrete",
+    hedger=_items(dict(bandwidth=0.05, capacity=2000)),
+    run=RunConfig(n_blocks=3, episodes_per_block=2, eval_episodes=4, eval_max_steps=30,
+                  train_max_steps=40),
+    x_axis="episodes",
+)
+
+
+def test_mean_ci_matches_t_interval():
+    x = np.array([[1.0, 10.0], [2.0, 12.0], [4.0, 11.0], [3.0, 15.0]])
+    mean, half = mean_ci(x, axis=0)
+    for j in range(2):
+        lo, hi = stats.t.interval(0.95, 3, loc=x[:, j].mean(), scale=stats.sem(x[:, j]))
+        assert mean[j] == pytest.approx(x[:, j].mean())
+        assert mean[j] - half[j] == pytest.approx(lo)
+        assert mean[j] + half[j] == pytest.approx(hi)
+    assert mean_ci(np.array([[3.0]]))[1] == 0.0
+
+
+def test_welch_p():
+    rng = np.random.default_rng(0)
+    assert welch_p(rng.normal(0, 1, 30), rng.normal(3, 1, 30)) < 1e-6
+    assert welch_p(np.ones(5), np.ones(5)) == 1.0
+    assert welch_p(np.ones(5), 2 * np.ones(5)) == 0.0
+
+
+def test_every_figure_builds_in_both_modes():
+    for name in FIGURES:
+        for mode in ("quick", "full"):
+            fig = build_figure(name, mode)
+            assert fig.variants and fig.name == name
+            for v in fig.variants:
+                hash(v)  # static, hashable
+    with pytest.raises(ValueError, match="unknown figure"):
+        build_figure("fig9")
+    with pytest.raises(ValueError, match="mode"):
+        build_figure("fig1", "slow")
+
+
+def test_atomic_write_keeps_old_file_on_failure(tmp_path, monkeypatch):
+    path = tmp_path / "r.json"
+    runner.atomic_write_json(str(path), {"a": 1})
+
+    def boom(*args, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(os, "replace", boom)
+    with pytest.raises(OSError):
+        runner.atomic_write_json(str(path), {"a": 2})
+    assert json.loads(path.read_text()) == {"a": 1}
+    assert [p.name for p in tmp_path.iterdir()] == ["r.json"]  # no temp file left behind
+
+
+def test_run_variant_resumes_after_interruption(tmp_path):
+    out = str(tmp_path)
+    calls = []
+
+    def interrupt(block):
+        calls.append(block)
+        if block == 2:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        runner.run_variant(TINY, [0, 1, 2], out, seed_batch=2, progress=False,
+                           on_block=interrupt)
+    assert calls == [1, 2]
+    # The checkpoint holds blocks 0..2 of the first batch; resuming runs only block 3 there.
+    resumed = []
+    rec = runner.run_variant(TINY, [0, 1, 2], out, seed_batch=2, progress=False,
+                             on_block=resumed.append)
+    assert resumed == [3, 1, 2, 3]  # batch 1 resumes at block 3; batch 2 (seed 2) from scratch
+    assert rec["complete"]
+    assert np.asarray(rec["mean_steps"]).shape == (3, 4)
+    assert np.asarray(rec["episodes"]).tolist() == [[0, 2, 4, 6]] * 3
+    ms = np.asarray(rec["mean_steps"])
+    assert np.all((ms >= 1) & (ms <= 30))
+    # The same seeds run uninterrupted in one batch give the same numbers (seed i's key does
+    # not depend on batching or resumption).
+    fresh = runner.run_variant(TINY, [0, 1, 2], str(tmp_path / "fresh"), seed_batch=3,
+                               progress=False)
+    np.testing.assert_allclose(fresh["mean_steps"], rec["mean_steps"], rtol=1e-5)
+    # A finished variant is read from its result file, not recomputed.
+    again = []
+    runner.run_variant(TINY, [0, 1, 2], out, seed_batch=2, progress=False,
+                       on_block=again.append)
+    assert again == []
+    # No checkpoints remain once batches are finished.
+    assert not [p for p in os.listdir(os.path.join(out, "cache")) if p.startswith("ckpt-")]
+
+
+def test_corrupt_checkpoint_is_not_trusted(tmp_path):
+    out = str(tmp_path)
+    with pytest.raises(KeyboardInterrupt):
+        runner.run_variant(TINY, [0], out, progress=False,
+                           on_block=lambda b: (_ for _ in ()).throw(KeyboardInterrupt()))
+    ckpts = [p for p in os.listdir(os.path.join(out, "cache")) if p.startswith("ckpt-")]
+    assert len(ckpts) == 1
+    path = os.path.join(out, "cache", ckpts[0])
+    data = open(path, "rb").read()
+    open(path, "wb").write(data[: len(data) // 2])
+    blocks = []
+    rec = runner.run_variant(TINY, [0], out, progress=False, on_block=blocks.append)
+    assert blocks == [1, 2, 3]  # restarted from scratch
+    assert rec["complete"]
+
+
+def test_summary_and_plot(tmp_path):
+    from experiments.plotting import plot_figure
+
+    rec = runner.run_variant(TINY, [0, 1], str(tmp_path), progress=False)
+    fake_on = dict(rec, label="discrete")
+    fake_off = dict(rec, label="discrete, IVH off",
+                    mean_steps=(np.asarray(rec["mean_steps"]) + 50).tolist())
+    data = {"figure": "fig3", "title": "t", "mode": "quick", "variants": [fake_on, fake_off],
+            "reference": {"random policy": 163.0}}
+    text = figure_summary(data)
+    assert "| discrete | 2 |" in text and "IVH off" in text and "Welch p" in text
+    png = tmp_path / "f.png"
+    plot_figure(str(png), "t", "runs", [fake_on, fake_off], {"random policy": 163.0})
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_cli_rejects_bad_arguments(capsys):
+    from experiments.__main__ import main
+
+    with pytest.raises(SystemExit):
+        main(["fig7"])
+    with pytest.raises(SystemExit):
+        main(["fig1", "--seeds", "0"])
