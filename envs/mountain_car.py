@@ -103,6 +103,14 @@ class MountainCar:
         self.action_space = (ActionSpace.box(-1.0, 1.0) if self.continuous
                              else ActionSpace.discrete([-1.0, 0.0, 1.0]))
 
+    # Hashable by value, so that equal envs share compiled code as static jit arguments.
+    def __eq__(self, other) -> bool:
+        return (isinstance(other, MountainCar) and self.continuous == other.continuous
+                and self.max_steps == other.max_steps)
+
+    def __hash__(self) -> int:
+        return hash((MountainCar, self.continuous, self.max_steps))
+
     def __repr__(self) -> str:
         return f"MountainCar(continuous={self.continuous}, max_steps={self.max_steps})"
 
