@@ -104,7 +104,8 @@ class BraxEnv(Env):
         a = jnp.asarray(action, jnp.float32)
         low, high = jnp.asarray(self._low), jnp.asarray(self._high)
         if self.normalize_actions:
-            a = low + (jnp.clip(a, -1.0, 1.0) + 1.0) * 0.5 * (high - low)
+            # centre + a * half-range: exact (a itself) for a [-1, 1] box.
+            a = 0.5 * (low + high) + jnp.clip(a, -1.0, 1.0) * (0.5 * (high - low))
         else:
             a = jnp.clip(a, low, high)
         if self._values is None:
