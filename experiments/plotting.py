@@ -29,14 +29,14 @@ def plot_figure(path: str, title: str, x_label: str, records: List[Dict],
         if value is None or not np.isfinite(value):
             continue
         ax.axhline(value, color="grey", ls=next(styles, "--"), lw=1)
-        ax.annotate(f"{label} ({value:.0f})", (0.99, value), xycoords=("axes fraction", "data"),
-                    ha="right", va="bottom", fontsize=8, color="dimgrey")
+        ax.annotate(f"{label} ({value:.0f})", (0.01, value), xycoords=("axes fraction", "data"),
+                    ha="left", va="bottom", fontsize=8, color="dimgrey")
     ax.set_xlabel(x_label)
     ax.set_ylabel("mean steps to goal (evaluation)")
     ax.set_title(title, fontsize=10)
     ax.set_ylim(bottom=0)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8, loc="upper right")
+    ax.legend(fontsize=8, loc="center right")
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
