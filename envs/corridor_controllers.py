@@ -42,7 +42,6 @@ damped controller such as ``(1.0, 0.5, 0.5)`` gives 69.4.
 """
 from __future__ import annotations
 
-import dataclasses
 from typing import Any, Callable, NamedTuple, Optional, Sequence
 
 import jax
@@ -205,76 +204,17 @@ def rerun_best_search(seed: int = 0, verbose: bool = True):
 # demonstrations
 # ------------------------------------------------------------------------------------------
 
-@dataclasses.dataclass
-class CorridorDemonstrations:
-    """Example runs as padded numpy arrays, leading axes (E episodes, T steps).
-
-    obs, next_obs float32 (E, T, 3); action float32 (E, T, 1); reward float32 (E, T);
-    terminated, truncated, valid bool (E, T) (``valid`` marks real steps).
-    """
-    obs: np.ndarray
-    action: np.ndarray
-    reward: np.ndarray
-    next_obs: np.ndarray
-    terminated: np.ndarray
-    truncated: np.ndarray
-    valid: np.ndarray
-    env_id: str = "corridor"
-    source: str = "hand_coded"
-
-
-def collect_runs(policy: Policy, key: jax.Array, n_runs: int,
-                 params: Optional[CorridorParams] = None, env: Optional[Corridor] = None):
-    """Run ``policy`` from ``n_runs`` fresh training starts (``env.reset``), vmapped.
-
-    Returns a dict of numpy arrays with leading axes (n_runs, max_steps): obs, action,
-    reward, next_obs, terminated, truncated, valid.
-    """
-    env = env or Corridor()
-    params = params if params is not None else env.default_params()
-
-    def episode(k):
-        kr, kp, ks = jax.random.split(k, 3)
-        obs, state = env.reset(kr, params)
-        pstate = policy.init(kp)
-
-        def body(carry, kk):
-            obs, state, pstate, done = carry
-            ka, kst = jax.random.split(kk)
-            a, pstate = policy.act(ka, obs, pstate)
-            obs2, state2, r, term, trunc, _ = env.step(kst, state, a, params)
-            out = dict(obs=obs, action=a, reward=r, next_obs=obs2, terminated=term,
-                       truncated=trunc, valid=~done)
-            return (obs2, state2, pstate, done | term | trunc), out
-
-        _, traj = jax.lax.scan(body, (obs, state, pstate, jnp.zeros((), bool)),
-                               jax.random.split(ks, env.max_steps))
-        return traj
-
-    traj = jax.jit(jax.vmap(episode))(jax.random.split(key, n_runs))
-    traj = {k: np.asarray(v) for k, v in traj.items()}
-    v = traj["valid"]
-    for k in ("reward",):
-        traj[k] = np.where(v, traj[k], 0.0).astype(np.float32)
-    for k in ("terminated", "truncated"):
-        traj[k] = traj[k] & v
-    return traj
-
-
 def hand_coded_demonstrations(seed: int = 0, n_runs: int = 25,
                               params: Optional[CorridorParams] = None):
-    """25 example runs of the hand-coded controller from random training starts.
+    """``n_runs`` example runs of the hand-coded controller from fresh training starts.
 
     Returns ``envs.demonstrations.Demonstrations`` (env_id="corridor", source="hand_coded")
-    when that module exists, else ``CorridorDemonstrations`` with the same fields; arrays have
-    leading axes (n_runs, 200), padded, with a ``valid`` mask.
+    with leading axes (n_runs, T), T the longest run (at most ``max_steps`` = 200), padded
+    with zeros and a ``valid`` mask; recorded by ``envs.demonstrators.record_episodes``.
     """
+    from envs.demonstrators import record_episodes
+
     env = Corridor()
     params = params if params is not None else env.default_params()
-    traj = collect_runs(hand_coded_policy(params), jax.random.PRNGKey(seed), n_runs,
-                        params, env)
-    try:
-        from envs.demonstrations import Demonstrations  # type: ignore
-        return Demonstrations(**traj, env_id="corridor", source="hand_coded")
-    except (ImportError, TypeError):
-        return CorridorDemonstrations(**traj)
+    return record_episodes(env, params, hand_coded_policy(params), jax.random.PRNGKey(seed),
+                           n_runs, env.max_steps, source="hand_coded")

@@ -211,18 +211,22 @@ def test_search_improves_on_initial_guess():
 
 def test_hand_coded_demonstrations():
     d = hand_coded_demonstrations(seed=0, n_runs=25)
-    assert d.obs.shape == (25, 200, 3) and d.next_obs.shape == (25, 200, 3)
-    assert d.action.shape == (25, 200, 1) and d.valid.shape == (25, 200)
+    T = d.valid.shape[1]
+    assert T <= 200 and d.env_id == "corridor" and d.source == "hand_coded"
+    assert d.obs.shape == (25, T, 3) and d.next_obs.shape == (25, T, 3)
+    assert d.action.shape == (25, T, 1) and d.valid.shape == (25, T)
     v = d.valid
     lengths = v.sum(1)
-    assert np.all(v[np.arange(25), 0]) and np.all(lengths > 0)
+    assert np.all(v[np.arange(25), 0]) and np.all(lengths > 0) and lengths.max() == T
     # valid steps form a prefix; exactly one terminal/truncation per episode, at the end
-    assert np.all(v == (np.arange(200)[None] < lengths[:, None]))
+    assert np.all(v == (np.arange(T)[None] < lengths[:, None]))
     ends = d.terminated | d.truncated
     assert np.all(ends.sum(1) == 1) and np.all(ends[np.arange(25), lengths - 1])
     assert np.all(np.abs(d.action[v]) <= 1.0)
     assert np.all(d.reward[~v] == 0)
     np.testing.assert_array_equal(d.obs[:, 1:][v[:, 1:]], d.next_obs[:, :-1][v[:, 1:]])
+    # The hand-coded controller reaches the end in every example run (the paper's 25 runs).
+    assert np.all(d.terminated[np.arange(25), lengths - 1])
 
 
 def test_render_rgb():
