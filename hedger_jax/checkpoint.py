@@ -1,6 +1,8 @@
 """Save and load a HEDGER agent to one file, bit for bit, atomically.
 
-What is saved: the ``HedgerConfig``, the ``Memory`` (any leading batch axes), optionally the
+What is saved: the ``HedgerConfig``, the ``Memory`` (any leading batch axes; its five arrays --
+a neighbour index, when the config uses one, is derived state, rebuilt on load by
+``refresh_index``), optionally the
 ``RunConfig``, optional extra arrays (e.g. the learner's PRNG key) and metadata (library, jax,
 numpy and Python versions, seed, env id, creation time, format version, user keys).
 
@@ -321,13 +323,18 @@ def load_checkpoint(path: PathLike, config: Optional[HedgerConfig] = None,
         fail(f"missing arrays {missing}")
     np_memory = Memory(**{k: raw[f"memory/{k}"] for k in _MEMORY_FIELDS})
     for k in _MEMORY_FIELDS:
-        if np_memory._asdict()[k].dtype != _MEMORY_DTYPES[k]:
-            fail(f"array 'memory/{k}' has dtype {np_memory._asdict()[k].dtype}, expected "
+        if getattr(np_memory, k).dtype != _MEMORY_DTYPES[k]:
+            fail(f"array 'memory/{k}' has dtype {getattr(np_memory, k).dtype}, expected "
                  f"{np.dtype(_MEMORY_DTYPES[k])}")
     try:
         check_memory(stored, np_memory)
     except InvalidInputError as exc:
         fail(f"the stored memory is invalid: {exc}")
-    memory = Memory(*(jnp.asarray(a) for a in np_memory))
+    from hedger_jax.memory import refresh_index
+
+    # The five stored arrays come back bit for bit; a neighbour index (if the config uses
+    # one) is derived state and is rebuilt from them.
+    memory = refresh_index(stored, Memory(**{k: jnp.asarray(getattr(np_memory, k))
+                                             for k in _MEMORY_FIELDS}))
     extra = {k[len("extra/"):]: a for k, a in raw.items() if k.startswith("extra/")}
     return Checkpoint(stored, memory, stored_run, meta, extra)
