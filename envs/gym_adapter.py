@@ -223,8 +223,9 @@ class FunctionalGymEnv(gymnasium.Env):
             if self._reset_to_fn is None:
                 raise ValueError(f"{type(self.env).__name__} has no reset_to: cannot use "
                                  "options['start']")
-            self._key, obs, self._state = self._reset_to_fn(self._key, self.params,
-                                                            jnp.asarray(start, jnp.float32))
+            if isinstance(start, (list, tuple, np.ndarray, float, int)):
+                start = jnp.asarray(start, jnp.float32)  # else: a pytree (e.g. an env state)
+            self._key, obs, self._state = self._reset_to_fn(self._key, self.params, start)
         else:
             self._key, obs, self._state = self._reset_fn(self._key, self.params)
         self._elapsed = 0
