@@ -12,6 +12,9 @@ import math
 from typing import Any, Optional, Tuple
 
 FULL_POLICIES = ("error", "overwrite_oldest")
+NEIGHBOUR_INDEXES = ("auto", "brute", "grid")
+#: ``neighbour_index="auto"`` uses the grid index from this capacity up (measured crossover).
+AUTO_GRID_CAPACITY = 50_000
 
 
 def _tuple_of_floats(name: str, value: Any, length: int) -> Tuple[float, ...]:
@@ -54,6 +57,13 @@ class HedgerConfig:
     point, sets a flag and ``memory_check`` raises ``MemoryFullError`` on the host (stored data
     is never corrupted); ``"overwrite_oldest"`` replaces the oldest point (a ring buffer).
 
+    Neighbour search: ``neighbour_index`` "brute" (scan every slot), "grid" (the exact grid
+    index of ``hedger_jax.index``: same neighbour sets) or "auto" (grid from
+    ``AUTO_GRID_CAPACITY`` slots up); ``index_chunk`` candidates per step of the grid scan;
+    ``index_bounds`` the scaled range ((lo, hi) per dimension) the grid covers (default: [0, 1]
+    per state dimension and the scaled action range; points outside are clamped to the border
+    cells, never dropped).
+
     Numerics: ``ridge`` is a relative ridge added to the equilibrated normal equations;
     ``ivh_tol`` a relative tolerance on the hull test (so a stored point is inside its own hull
     despite float32 round-off).
@@ -83,6 +93,9 @@ class HedgerConfig:
     full_policy: str = "error"
     ridge: float = 1e-6
     ivh_tol: float = 1e-3
+    neighbour_index: str = "auto"
+    index_chunk: int = 64
+    index_bounds: Optional[Tuple[Tuple[float, float], ...]] = None
 
     def __post_init__(self):
         set_ = lambda name, value: object.__setattr__(self, name, value)  # noqa: E731
@@ -164,6 +177,24 @@ class HedgerConfig:
             raise ValueError(f"ivh_tol: must be in [0, 1), got {self.ivh_tol}")
         for name in ("use_ivh", "region_update"):
             set_(name, bool(getattr(self, name)))
+        if self.neighbour_index not in NEIGHBOUR_INDEXES:
+            raise ValueError(f"neighbour_index: must be one of {NEIGHBOUR_INDEXES}, "
+                             f"got {self.neighbour_index!r}")
+        if isinstance(self.index_chunk, bool) or int(self.index_chunk) != self.index_chunk \
+                or int(self.index_chunk) < 1:
+            raise ValueError(f"index_chunk: must be an integer >= 1, got {self.index_chunk!r}")
+        set_("index_chunk", int(self.index_chunk))
+        if self.index_bounds is not None:
+            try:
+                bounds = tuple((float(lo), float(hi)) for lo, hi in self.index_bounds)
+            except (TypeError, ValueError):
+                raise ValueError("index_bounds: expected one (lo, hi) pair per input "
+                                 f"dimension, got {self.index_bounds!r}") from None
+            if len(bounds) != d or not all(math.isfinite(lo) and math.isfinite(hi) and lo <= hi
+                                           for lo, hi in bounds):
+                raise ValueError(f"index_bounds: expected {d} finite (lo, hi) pairs with "
+                                 f"lo <= hi, got {self.index_bounds!r}")
+            set_("index_bounds", bounds)
         if self.discrete_actions is None and self.action_dim != 1:
             raise ValueError("action_dim: the continuous greedy search supports action_dim == 1; "
                              "use discrete_actions for multi-dimensional actions")
@@ -178,6 +209,13 @@ class HedgerConfig:
     def n_params(self) -> int:
         """Parameters of the local linear model (intercept + d slopes)."""
         return self.dim + 1
+
+    @property
+    def index_kind(self) -> str:
+        """The neighbour search in use: "brute" or "grid" ("auto" resolved by capacity)."""
+        if self.neighbour_index == "auto":
+            return "grid" if self.capacity >= AUTO_GRID_CAPACITY else "brute"
+        return self.neighbour_index
 
     @property
     def is_discrete(self) -> bool:

@@ -17,12 +17,13 @@ The stored data are never corrupted by either event.
 """
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from hedger_jax import index as _grid
 from hedger_jax.config import HedgerConfig
 
 FLAG_FULL = 1
@@ -46,6 +47,9 @@ class Memory(NamedTuple):
       size:   int32 () number of valid points (<= capacity).
       head:   int32 () next slot to write.
       flags:  int32 () error bits (``FLAG_FULL``, ``FLAG_NONFINITE``).
+      index:  the neighbour index (``hedger_jax.index.GridIndex``) when the config uses one
+              (``neighbour_index="grid"``), else ``None`` (no leaves). Rebuilt by
+              ``refresh_index``; always exact, even when stale.
     """
 
     points: jax.Array
@@ -53,6 +57,7 @@ class Memory(NamedTuple):
     size: jax.Array
     head: jax.Array
     flags: jax.Array
+    index: Any = None
 
 
 class Neighbours(NamedTuple):
@@ -76,7 +81,13 @@ def init_memory(config: HedgerConfig) -> Memory:
         size=jnp.zeros((), jnp.int32),
         head=jnp.zeros((), jnp.int32),
         flags=jnp.zeros((), jnp.int32),
+        index=_grid.empty(config) if uses_index(config) else None,
     )
+
+
+def uses_index(config: HedgerConfig) -> bool:
+    """Whether the config's neighbour search uses the grid index (else brute force)."""
+    return config.index_kind == "grid"
 
 
 def scale_inputs(config: HedgerConfig, state: jax.Array, action: jax.Array) -> jax.Array:
@@ -114,15 +125,28 @@ def select_neighbours(config: HedgerConfig, memory: Memory, z: jax.Array) -> Nei
     Brute force: squared distances to every slot, empty slots masked to +inf, then the
     ``max_neighbours`` nearest by ``lax.top_k`` (kept in float32, where top_k is fast), then
     the threshold. If more than ``max_neighbours`` points lie within ``k_thresh`` only the
-    nearest are used. This is the one function a faster index replaces.
+    nearest are used. With ``neighbour_index="grid"`` the exact same set comes from the grid
+    index (``hedger_jax.index``): the cells around the query plus the points written since
+    the last ``refresh_index``.
     """
     capacity = memory.values.shape[-1]
+    if uses_index(config):
+        index = memory.index
+        if index is None:  # e.g. a memory built by hand: index everything now (exact)
+            index = _grid.build(config, memory.points, memory.size)
+        idx, d2_sel, mask = _grid.select(config, memory.points, memory.head, index, z)
+        return _pad_neighbours(config, idx, d2_sel, mask)
     d2 = squared_distances(memory.points, z)
     d2 = jnp.where(valid_mask(memory), d2, jnp.inf)
     k = min(config.max_neighbours, capacity)
     neg_d2, idx = jax.lax.top_k(-d2, k)
     d2_sel = -neg_d2
     mask = d2_sel <= jnp.float32(config.k_thresh) ** 2
+    return _pad_neighbours(config, idx, d2_sel, mask)
+
+
+def _pad_neighbours(config: HedgerConfig, idx, d2_sel, mask) -> Neighbours:
+    k = idx.shape[-1]
     if k < config.max_neighbours:  # tiny memory: pad to the static neighbour count
         pad = config.max_neighbours - k
         idx = jnp.concatenate([idx, jnp.zeros((pad,), idx.dtype)])
@@ -158,8 +182,11 @@ def add_scaled(config: HedgerConfig, memory: Memory, z: jax.Array, value: jax.Ar
     flags = memory.flags
     flags = flags | jnp.where(write & ~finite, FLAG_NONFINITE, 0)
     flags = flags | jnp.where(write & finite & ~room, FLAG_FULL, 0)
+    index = memory.index
+    if index is not None:
+        index = _grid.note_write(index, do, capacity)
     return Memory(points, values, size.astype(jnp.int32), head.astype(jnp.int32),
-                  flags.astype(jnp.int32))
+                  flags.astype(jnp.int32), index)
 
 
 def add_points(config: HedgerConfig, memory: Memory, states: jax.Array, actions: jax.Array,
@@ -180,9 +207,18 @@ def refresh_index(config: HedgerConfig, memory: Memory) -> Memory:
 
     The agent calls it at the start of every episode and before every evaluation, i.e.
     whenever the memory is about to be queried many times without new points. With the
-    brute-force search there is no index and this is the identity.
+    brute-force search there is no index and this is the identity. With the grid index it
+    merges the points written since the last refresh into the index (O(capacity + cells)
+    per 1024 new points; a memory without an index is indexed from scratch by a sort).
+    Points written afterwards are searched by brute force until the next refresh, so the
+    search is exact at any time.
     """
-    return memory
+    if not uses_index(config):
+        return memory
+    if memory.index is None:
+        return memory._replace(index=_grid.build(config, memory.points, memory.size))
+    return memory._replace(index=_grid.refresh(config, memory.index, memory.points,
+                                               memory.head))
 
 
 def memory_check(memory: Memory) -> Memory:

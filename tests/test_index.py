@@ -1,0 +1,260 @@
+"""The grid neighbour index returns exactly the brute-force neighbour sets.
+
+Brute force (``neighbour_index="brute"``) is the reference. Compared per query: the multiset of
+squared distances (bit-identical float32) and the set of slots, ties aside (a slot tied with
+the k-th distance may be swapped for another one at the same distance).
+"""
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from hedger_jax import index as gi
+from hedger_jax.config import HedgerConfig
+from hedger_jax.memory import (add_scaled, init_memory, refresh_index, select_neighbours)
+from hedger_jax.predict import predict_scaled
+from hedger_jax.train import Transition, train_episode
+
+DISCRETE = ((-1.0,), (0.0,), (1.0,))
+
+
+def _cfg(kind, **kw):
+    base = dict(state_dim=2, action_dim=1, capacity=2000, bandwidth=0.05,
+                discrete_actions=DISCRETE, max_neighbours=16)
+    base.update(kw)
+    return HedgerConfig(neighbour_index=kind, **base)
+
+
+def _memory(cfg, pts, refresh=True):
+    """A memory holding pts (n, d) in slots [0, n), indexed from scratch."""
+    n = pts.shape[0]
+    p = np.zeros((cfg.dim, cfg.capacity), np.float32)
+    p[:, :n] = pts.T
+    m = init_memory(cfg)._replace(points=jnp.asarray(p), size=jnp.int32(n),
+                                  head=jnp.int32(n % cfg.capacity))
+    if cfg.index_kind == "grid":
+        m = m._replace(index=None)           # hand-built: refresh indexes from scratch
+        if refresh:
+            m = refresh_index(cfg, m)
+    return m
+
+
+@functools.lru_cache(maxsize=None)
+def _select_fn(cfg):
+    return jax.jit(jax.vmap(lambda m, z: select_neighbours(cfg, m, z), in_axes=(None, 0)))
+
+
+def _assert_same(cfg_b, m_b, cfg_g, m_g, queries):
+    q = jnp.asarray(queries, jnp.float32)
+    a = jax.device_get(_select_fn(cfg_b)(m_b, q))
+    b = jax.device_get(_select_fn(cfg_g)(m_g, q))
+    for i in range(q.shape[0]):
+        da = np.sort(a.sqdist[i][a.mask[i]])
+        db = np.sort(b.sqdist[i][b.mask[i]])
+        np.testing.assert_array_equal(da, db, err_msg=f"query {i}: squared distances differ")
+        ia, ib = a.indices[i][a.mask[i]], b.indices[i][b.mask[i]]
+        assert len(set(ib.tolist())) == len(ib), f"query {i}: duplicate slots {ib}"
+        if len(da) and len(da) == cfg_b.max_neighbours:  # capped: ties at the k-th distance
+            kth = da[-1]
+            ia = ia[a.sqdist[i][a.mask[i]] < kth]
+            ib = ib[b.sqdist[i][b.mask[i]] < kth]
+        assert set(ia.tolist()) == set(ib.tolist()), f"query {i}: {sorted(ia)} != {sorted(ib)}"
+    return a
+
+
+def _pair(**kw):
+    return _cfg("brute", **kw), _cfg("grid", **kw)
+
+
+def _uniform(rng, n):
+    x = np.empty((n, 3), np.float32)
+    x[:, :2] = rng.uniform(0, 1, (n, 2))
+    x[:, 2] = rng.integers(-1, 2, n)
+    return x
+
+
+def test_config_validation_names_the_field():
+    with pytest.raises(ValueError, match="neighbour_index"):
+        HedgerConfig(2, neighbour_index="kdtree")
+    with pytest.raises(ValueError, match="index_chunk"):
+        HedgerConfig(2, index_chunk=0)
+    with pytest.raises(ValueError, match="index_bounds"):
+        HedgerConfig(2, index_bounds=((0, 1), (0, 1)))
+    with pytest.raises(ValueError, match="index_bounds"):
+        HedgerConfig(2, index_bounds=((0, 1), (1, 0), (0, 1)))
+    assert HedgerConfig(2, capacity=1000).index_kind == "brute"
+    assert HedgerConfig(2, capacity=10 ** 6).index_kind == "grid"
+    assert HedgerConfig(2, capacity=10 ** 6, neighbour_index="brute").index_kind == "brute"
+
+
+def test_geometry_cells_at_least_k_thresh():
+    cfg = _cfg("grid")
+    geo = gi.geometry(cfg)
+    for inv in geo.inv_side:
+        assert 1.0 / inv >= cfg.k_thresh
+    assert geo.n_cells == int(np.prod(geo.cells))
+    # A huge grid is coarsened, never finer than k_thresh.
+    big = HedgerConfig(5, 1, bandwidth=1e-3, neighbour_index="grid", capacity=100)
+    g2 = gi.geometry(big)
+    assert g2.n_cells <= gi._MAX_CELLS and min(1.0 / v for v in g2.inv_side) >= big.k_thresh
+
+
+def test_uniform_random_matches_brute():
+    rng = np.random.default_rng(0)
+    cb, cg = _pair()
+    pts = _uniform(rng, 1500)
+    queries = np.concatenate([_uniform(rng, 150), pts[:50]])   # includes stored points
+    a = _assert_same(cb, _memory(cb, pts), cg, _memory(cg, pts), queries)
+    assert a.mask.sum(1).mean() > 3                            # non-trivial neighbour sets
+
+
+def test_clustered_overflowing_cells_small_chunks():
+    """Thousands of points (with exact duplicates) in a few cells, scanned 8 at a time."""
+    rng = np.random.default_rng(1)
+    cb, cg = _pair(index_chunk=8, max_neighbours=16)
+    centres = _uniform(rng, 3)
+    pts = np.repeat(centres, 600, axis=0) + rng.normal(0, 0.01, (1800, 3)).astype(np.float32)
+    pts[:, 2] = np.round(pts[:, 2])
+    pts[::7] = pts[0]                                          # many exact duplicates
+    queries = np.concatenate([centres + rng.normal(0, 0.02, (3, 3)).astype(np.float32),
+                              pts[:20], _uniform(rng, 20)])
+    mg = _memory(cg, pts)
+    starts = np.asarray(mg.index.starts)
+    assert np.diff(starts).max() > 100 * cg.index_chunk // 8   # really overflowing cells
+    _assert_same(cb, _memory(cb, pts), cg, mg, queries)
+
+
+def test_cell_borders_and_threshold_distance():
+    """Points on cell borders and at exactly k_thresh (in float32) from the query."""
+    cb, cg = _pair()
+    geo = gi.geometry(cg)
+    side = np.float32(1.0 / geo.inv_side[0])
+    r = np.float32(cg.k_thresh)
+    grid = (np.arange(0, 8, dtype=np.float32) * side).astype(np.float32)
+    xs, vs = np.meshgrid(grid, grid)
+    border = np.stack([xs.ravel(), vs.ravel(), np.zeros(xs.size, np.float32)], 1)
+    q = border[:40].copy()
+    ring = np.concatenate([q + np.array([r, 0, 0], np.float32), q - np.array([0, r, 0], np.float32),
+                           q + np.array([np.nextafter(r, 0), 0, 0], np.float32),
+                           q + np.array([0, np.nextafter(r, 1), 0], np.float32)])
+    pts = np.concatenate([border, ring, q + 0.5 * side])
+    queries = np.concatenate([q, border + np.float32(1e-7), border - np.float32(1e-7)])
+    a = _assert_same(cb, _memory(cb, pts), cg, _memory(cg, pts), queries)
+    assert a.mask.sum() > len(queries)
+
+
+def test_out_of_range_points_are_clamped_not_dropped():
+    rng = np.random.default_rng(2)
+    cb, cg = _pair()
+    pts = _uniform(rng, 400)
+    far = np.array([[-5, -5, 0], [7, 0.5, 1], [0.5, 40, -1], [1e6, 1e6, 1e6], [-1e6, 0, 3],
+                    [1.02, 0.5, 0], [-0.03, 0.2, 1]], np.float32)
+    far_cloud = np.repeat(far, 5, 0) + rng.normal(0, 0.01, (35, 3)).astype(np.float32)
+    pts = np.concatenate([pts, far, far_cloud])
+    queries = np.concatenate([far, far + 0.02, _uniform(rng, 50),
+                              np.array([[0.5, 0.5, 0.4], [0.5, 0.5, -2.5]], np.float32)])
+    a = _assert_same(cb, _memory(cb, pts), cg, _memory(cg, pts), queries)
+    assert a.mask[: len(far)].sum(1).min() >= 1                # far points found themselves
+
+
+def test_tiny_and_empty_memories():
+    cb, cg = _pair(capacity=5, max_neighbours=8)
+    for n in (0, 1, 5):
+        pts = _uniform(np.random.default_rng(n), n)
+        q = _uniform(np.random.default_rng(9), 10)
+        if n:
+            q = np.concatenate([q, pts])
+        _assert_same(cb, _memory(cb, pts), cg, _memory(cg, pts), q)
+
+
+def _run_writes(policy, capacity, n_writes, refresh_every, seed):
+    """Write points one by one through add_scaled; refresh at chosen steps; compare often."""
+    rng = np.random.default_rng(seed)
+    cb, cg = _pair(capacity=capacity, full_policy=policy, max_neighbours=8, bandwidth=0.08)
+    pts = _uniform(rng, n_writes)
+    pts[::5, :2] = pts[::5, :2] * 0.1                          # a dense corner
+    vals = rng.normal(size=n_writes).astype(np.float32)
+
+    @jax.jit
+    def write_block(mb, mg, zs, vs, writes):
+        def body(c, x):
+            mb, mg = c
+            z, v, w = x
+            return (add_scaled(cb, mb, z, v, w), add_scaled(cg, mg, z, v, w)), None
+        return jax.lax.scan(body, (mb, mg), (zs, vs, writes))[0]
+
+    refresh = jax.jit(functools.partial(refresh_index, cg))
+    mb, mg = init_memory(cb), init_memory(cg)
+    done = 0
+    for step, block in enumerate(refresh_every):
+        sl = slice(done, done + block)
+        writes = rng.uniform(size=block) > 0.1                 # some writes are skipped
+        mb, mg = write_block(mb, mg, jnp.asarray(pts[sl]), jnp.asarray(vals[sl]),
+                             jnp.asarray(writes))
+        done += block
+        q = np.concatenate([_uniform(rng, 24), pts[max(0, done - 8):done]])
+        _assert_same(cb, mb, cg, mg, q)                        # stale index: still exact
+        if step % 3 != 2:                                      # sometimes no refresh at all
+            mg = refresh(mg)
+            assert int(mg.index.n_new) == 0
+            _assert_same(cb, mb, cg, mg, q)
+    np.testing.assert_array_equal(np.asarray(mb.points), np.asarray(mg.points))
+    return mg
+
+
+def test_incremental_writes_error_policy():
+    mg = _run_writes("error", 600, 900, [50, 200, 3, 120, 527], seed=3)
+    assert int(mg.size) == 600                                 # filled up, then dropped
+
+
+def test_incremental_writes_ring_buffer_wraps_and_saturates():
+    """Ring buffer: overwritten indexed slots must not appear twice; more writes than the
+    capacity between refreshes (n_new saturates) and merges bigger than the merge window."""
+    blocks = [150, 90, 400, 30, 700, 60, 1500, 5]
+    mg = _run_writes("overwrite_oldest", 300, sum(blocks), blocks, seed=4)
+    assert int(mg.size) == 300
+
+
+def test_predictions_and_training_match_brute():
+    rng = np.random.default_rng(5)
+    cb, cg = _pair(max_neighbours=16, bandwidth=0.06)
+    pts = _uniform(rng, 1200)
+    mb, mg = _memory(cb, pts), _memory(cg, pts)
+    vals = jnp.asarray(rng.normal(size=cb.capacity).astype(np.float32))
+    mb, mg = mb._replace(values=vals), mg._replace(values=vals)
+    q = jnp.asarray(np.concatenate([_uniform(rng, 64), pts[:16]]))
+    pb = jax.jit(jax.vmap(lambda z: predict_scaled(cb, mb, z)))(q)
+    pg = jax.jit(jax.vmap(lambda z: predict_scaled(cg, mg, z)))(q)
+    np.testing.assert_array_equal(np.asarray(pb.known), np.asarray(pg.known))
+    np.testing.assert_allclose(np.asarray(pb.value), np.asarray(pg.value), rtol=1e-5, atol=1e-6)
+    T = 40
+    ep = Transition(obs=jnp.asarray(rng.uniform(0, 1, (T, 2)), jnp.float32),
+                    action=jnp.asarray(rng.integers(-1, 2, (T, 1)), jnp.float32),
+                    reward=jnp.asarray(rng.uniform(0, 1, T), jnp.float32),
+                    next_obs=jnp.asarray(rng.uniform(0, 1, (T, 2)), jnp.float32),
+                    terminated=jnp.zeros((T,), bool), valid=jnp.ones((T,), bool))
+    tb, _ = jax.jit(lambda m, e: train_episode(cb, m, e))(mb, ep)
+    tg, _ = jax.jit(lambda m, e: train_episode(cg, m, e))(mg, ep)
+    np.testing.assert_allclose(np.asarray(tb.values), np.asarray(tg.values), rtol=1e-4, atol=1e-6)
+    assert int(tg.index.n_new) == T
+
+
+def test_vmap_over_memories():
+    rng = np.random.default_rng(6)
+    cb, cg = _pair(capacity=500)
+    mems_b, mems_g = [], []
+    for s in range(3):
+        pts = _uniform(rng, 300 + 50 * s)
+        mems_b.append(_memory(cb, pts))
+        mems_g.append(_memory(cg, pts))
+    stack = lambda ms: jax.tree_util.tree_map(lambda *x: jnp.stack(x), *ms)  # noqa: E731
+    q = jnp.asarray(_uniform(rng, 20))
+    f = lambda cfg: jax.jit(jax.vmap(jax.vmap(  # noqa: E731
+        lambda m, z: select_neighbours(cfg, m, z), (None, 0)), (0, None)))
+    a, b = f(cb)(stack(mems_b), q), f(cg)(stack(mems_g), q)
+    np.testing.assert_array_equal(np.sort(np.where(a.mask, a.sqdist, -1), -1),
+                                  np.sort(np.where(b.mask, b.sqdist, -1), -1))
+    refreshed = jax.vmap(functools.partial(refresh_index, cg))(stack(mems_g))
+    assert refreshed.index.starts.shape[0] == 3
