@@ -171,6 +171,34 @@ def _evaluate_jit(memory, key, env_params, *, env, config, n_episodes, max_steps
     return evaluate(env, env_params, config, memory, key, n_episodes, max_steps)
 
 
+_MIN_BUCKET, _MAX_BUCKET = 8, 256
+
+
+def _bucket(n: int) -> int:
+    """Padded batch size for n rows: the next power of two in [8, 256] (few compilations)."""
+    b = _MIN_BUCKET
+    while b < n and b < _MAX_BUCKET:
+        b *= 2
+    return b
+
+
+def _bucketed(fn, *arrays: np.ndarray):
+    """Apply a jitted batch function to rows (B, ...) in padded buckets of ``_bucket`` rows
+    (chunks of at most 256), so that batch sizes share compiled code. fn returns a tuple of
+    arrays with leading axis = the bucket; the result is the tuple of NumPy arrays (B, ...)."""
+    n = arrays[0].shape[0]
+    outs = []
+    for start in range(0, n, _MAX_BUCKET):
+        rows = [a[start:start + _MAX_BUCKET] for a in arrays]
+        m = rows[0].shape[0]
+        b = _bucket(m)
+        padded = [np.concatenate([r, np.repeat(r[-1:], b - m, axis=0)]) if b > m else r
+                  for r in rows]
+        res = fn(*(jnp.asarray(p) for p in padded))
+        outs.append([np.asarray(x)[:m] for x in res])
+    return tuple(np.concatenate(parts) for parts in zip(*outs))
+
+
 def _config_index(config: HedgerConfig, actions: jax.Array) -> jax.Array:
     if not config.is_discrete:
         return jnp.zeros(actions.shape[:-1], jnp.int32)
@@ -447,12 +475,16 @@ class Hedger:
         obs, batched = check_observations(self.config, observation)
         if deterministic:
             k = jax.random.PRNGKey(0) if key is None else jnp.asarray(check_key(key))
-            acts, _, _, idx = _greedy_batch(self.memory, jnp.asarray(obs), k, config=self.config)
+            acts, idx = _bucketed(lambda o: _greedy_batch(self.memory, o, k,
+                                                          config=self.config)[::3], obs)
         else:
             k = self._next_key() if key is None else jnp.asarray(check_key(key))
-            acts, idx = _explore_batch(self.memory, jnp.asarray(obs), k, config=self.config,
-                                       run=self.run_config)
-        return np.asarray(acts), np.asarray(idx), batched
+            keys = jax.random.split(k, -(-obs.shape[0] // _MAX_BUCKET))
+            it = iter(keys)
+            acts, idx = _bucketed(lambda o: _explore_batch(self.memory, o, next(it),
+                                                           config=self.config,
+                                                           run=self.run_config), obs)
+        return acts, idx, batched
 
     def predict(self, observation: Any, state: Any = None, episode_start: Any = None,
                 deterministic: bool = True, key: Any = None) -> Tuple[np.ndarray, None]:
@@ -462,6 +494,9 @@ class Hedger:
         ``Discrete`` index into the env's action values (int64, shape () or (B,)); for a
         continuous env the action vector (float32 (A,) or (B, A)). ``predict_action_value``
         gives the action values instead.
+
+        Batches are evaluated in padded buckets (powers of two from 8 to 256 rows), so any
+        batch size reuses a few compiled functions.
 
         deterministic=True (the default here, unlike SB3: HEDGER's policy *is* the greedy one)
         is the greedy action; ties and "don't know" states are resolved with a fixed key
@@ -510,9 +545,8 @@ class Hedger:
             raise InvalidInputError(f"action_value: expected shape "
                                     f"{want if batched else want[1:]}, got {acts.shape}")
         acts = acts.reshape(want)
-        vals, known, _ = _q_batch(self.memory, jnp.asarray(obs), jnp.asarray(acts),
-                                  config=self.config)
-        vals, known = np.asarray(vals), np.asarray(known)
+        vals, known = _bucketed(lambda o, a: _q_batch(self.memory, o, a,
+                                                      config=self.config)[:2], obs, acts)
         return (vals, known) if batched else (vals[0], known[0])
 
     # -------------------------------------------------------------------------- evaluation
