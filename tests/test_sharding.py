@@ -1,0 +1,65 @@
+"""shard_seeds: a vmapped train with the seed axis sharded over (forced) CPU devices."""
+import os
+import subprocess
+import sys
+import textwrap
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from hedger_jax.sharding import shard_seeds
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+_SCRIPT = textwrap.dedent("""
+    import jax, jax.numpy as jnp, numpy as np
+    from hedger_jax.config import HedgerConfig
+    from hedger_jax.memory import add_points, init_memory, refresh_index
+    from hedger_jax.predict import predict
+    from hedger_jax.sharding import shard_seeds
+
+    assert len(jax.devices()) == 2, jax.devices()
+    cfg = HedgerConfig(2, 1, capacity=256, bandwidth=0.2, neighbour_index="grid")
+
+    def train(key):  # a small HEDGER job per seed: store points, index, predict
+        k1, k2, k3 = jax.random.split(key, 3)
+        s = jax.random.uniform(k1, (200, 2)); a = jax.random.uniform(k2, (200, 1), minval=-1)
+        mem = refresh_index(cfg, add_points(cfg, init_memory(cfg), s, a, s[:, 0] + a[:, 0]))
+        q = jax.random.uniform(k3, (8, 2))
+        v, known, n = jax.vmap(lambda x: predict(cfg, mem, x, jnp.zeros(1)))(q)
+        return {"value": v, "n": n, "size": mem.size}
+
+    keys = jax.random.split(jax.random.PRNGKey(0), 4)
+    out = shard_seeds(train, keys)
+    assert len(out["value"].sharding.device_set) == 2, out["value"].sharding
+    ref = jax.jit(jax.vmap(train))(keys)                      # unsharded reference
+    assert out["value"].shape == (4, 8) and out["size"].shape == (4,)
+    np.testing.assert_allclose(np.asarray(out["value"]), np.asarray(ref["value"]), rtol=1e-6)
+    np.testing.assert_array_equal(np.asarray(out["n"]), np.asarray(ref["n"]))
+    toy = lambda k: jax.random.normal(k, (3,))
+    odd = jax.random.split(jax.random.PRNGKey(1), 5)           # 5 seeds on 2 devices: padded
+    np.testing.assert_allclose(np.asarray(shard_seeds(toy, odd)),
+                               np.asarray(jax.vmap(toy)(odd)), rtol=1e-6)
+    print("OK")
+""")
+
+
+def test_shard_seeds_two_forced_cpu_devices():
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2",
+               JAX_PLATFORMS="cpu", PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    proc = subprocess.run([sys.executable, "-c", _SCRIPT], env=env, cwd=ROOT,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "OK" in proc.stdout
+
+
+def test_shard_seeds_in_process_single_device_and_padding():
+    def train(key):
+        return {"x": jax.random.normal(key, (3,)), "s": jnp.sum(jax.random.uniform(key, (4,)))}
+
+    keys = jax.random.split(jax.random.PRNGKey(2), 3)
+    out = shard_seeds(train, keys)
+    ref = jax.vmap(train)(keys)
+    np.testing.assert_allclose(np.asarray(out["x"]), np.asarray(ref["x"]), rtol=1e-6)
+    assert out["s"].shape == (3,)
