@@ -22,7 +22,7 @@ def _measured_references() -> Dict[str, float]:
     except (OSError, ValueError):
         return {}
     out = {}
-    for key in ("tabular_q", "optimal_dp", "random"):
+    for key in ("tabular_q", "tabular_q_paper_reward", "optimal_dp", "random"):
         value = data.get(key)
         if isinstance(value, dict):
             value = value.get("mean_steps")

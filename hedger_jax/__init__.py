@@ -17,6 +17,11 @@ from hedger_jax.memory import (FLAG_FULL, FLAG_NONFINITE, Memory, MemoryFullErro
                                select_neighbours, stored_points)
 from hedger_jax.predict import Prediction, predict, predict_detailed
 from hedger_jax.train import TrainInfo, Transition, train_episode, train_step
+from hedger_jax.agent import RunConfig, make_train, transitions_from_demonstrations
+from hedger_jax.checkpoint import (Checkpoint, CheckpointError, load_checkpoint,
+                                   read_checkpoint_header, save_checkpoint)
+from hedger_jax.learner import Hedger, make_env
+from hedger_jax.validation import InvalidInputError
 
 __version__ = "0.1.0"
 
@@ -25,5 +30,7 @@ __all__ = [
     "FLAG_NONFINITE", "init_memory", "add_points", "memory_check", "select_neighbours",
     "stored_points", "Prediction", "predict", "predict_detailed", "greedy_action",
     "greedy_value", "maximise_1d", "Transition", "TrainInfo", "train_step", "train_episode",
-    "__version__",
+    "RunConfig", "make_train", "transitions_from_demonstrations", "Hedger", "make_env",
+    "Checkpoint", "CheckpointError", "save_checkpoint", "load_checkpoint",
+    "read_checkpoint_header", "InvalidInputError", "__version__",
 ]

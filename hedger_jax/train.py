@@ -48,8 +48,13 @@ def region_update(memory: Memory, indices: jax.Array, weights: jax.Array, mask: 
     finite = jnp.isfinite(target)
     use = mask & jnp.asarray(apply, bool) & finite
     old = memory.values[indices]
-    delta = jnp.where(use, weights * (target - old), 0.0)
-    values = memory.values.at[indices].add(delta)
+    # Convex form, clipped: in float32 ``old + k (target - old)`` can leave [old, target]
+    # (e.g. old = 1, k = 1, target = 1e-8 gives 0), losing tiny gamma^n values.
+    new = (1.0 - weights) * old + weights * target
+    new = jnp.clip(new, jnp.minimum(old, target), jnp.maximum(old, target))
+    # Unused entries (padding may repeat a slot) are dropped, so each slot is written once.
+    capacity = memory.values.shape[-1]
+    values = memory.values.at[jnp.where(use, indices, capacity)].set(new, mode="drop")
     flags = memory.flags | jnp.where(jnp.asarray(apply, bool) & ~finite, FLAG_NONFINITE, 0)
     return memory._replace(values=values, flags=flags.astype(jnp.int32))
 
@@ -71,6 +76,10 @@ def train_step(config: HedgerConfig, memory: Memory, transition: Transition):
     q_next = jnp.where(jnp.asarray(t.terminated, bool), 0.0, q_next)
     reward = jnp.asarray(t.reward, jnp.float32)
     q_new = p.value + config.alpha * (reward + config.gamma * q_next - p.value)
+    # A non-finite next observation would look like "don't know" (no neighbours) and give a
+    # finite target: refuse it instead, so the memory flags it (FLAG_NONFINITE).
+    next_ok = jnp.all(jnp.isfinite(t.next_obs)) | jnp.asarray(t.terminated, bool)
+    q_new = jnp.where(next_ok, q_new, jnp.nan)
     if config.region_update:
         memory = region_update(memory, p.indices, p.weights, p.mask, q_new, valid)
     memory = add_scaled(config, memory, z, q_new, valid)

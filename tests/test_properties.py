@@ -190,16 +190,6 @@ TARGETS = st.one_of(st.sampled_from([0.0, 1.0, 0.8 ** 100, 0.8 ** 200, 1e-8, -1e
 WEIGHTS = st.one_of(st.sampled_from([0.0, 1.0, 0.99999994, 0.5, 0.01]),
                     st.floats(0.0, 1.0, width=32))
 
-_REGION_BUG = pytest.mark.xfail(strict=True, reason=(
-    "library bug (train.region_update): Q_i + kappa_i (target - Q_i) in float32 leaves the "
-    "range [min(Q_i, target), max(Q_i, target)] when kappa_i = 1 (a neighbour at distance 0, "
-    "e.g. a repeated (s, a)) and target << Q_i: Q_i = 1, target = 1e-8 gives "
-    "1 + (1e-8 - 1) = 0.0 < 1e-8 (relative precision of small values lost). Fix: "
-    "new = clip(Q_i + delta, min(Q_i, target), max(Q_i, target)), or the convex form "
-    "(1 - kappa) Q_i + kappa target."))
-
-
-@_REGION_BUG
 @PROPS
 @example(old=[1.0] * 8, weights=[1.0] * 8, target=1e-8)
 @given(old=st.lists(TARGETS, min_size=8, max_size=8),
