@@ -12,23 +12,27 @@ Design (all shapes static, so everything jits and vmaps):
 * **Geometry (static, from the config).** Every dimension i of the *scaled* inputs gets a
   range [lo_i, hi_i] (``index_bounds``; default: [0, 1] for state dimensions -- the scaling of
   ``HedgerConfig.for_env`` -- and the scaled action bounds / discrete action set for action
-  dimensions) cut into G_i cells of side s_i >= k_thresh (1 + 1e-3). A cell coordinate is
+  dimensions) cut into G_i cells of side s_i >= k_thresh (1 + 1e-3) -- about a quarter of
+  that along one "contiguous" state dimension, see ``Geometry`` -- A cell coordinate is
   ``clip(floor((z_i - lo_i) / s_i), 0, G_i - 1)``. Clipping is monotone and non-expansive,
   so two points within k_thresh of each other always land in the same or adjacent cells --
   points outside the range are *clamped into the border cells, never dropped*; they only
   make those cells fuller (slower, still exact). The product of the G_i is capped
   (``_MAX_CELLS``) by coarsening the cells (s_i only grows, so exactness is unaffected).
-  The cell key is the row-major linear index, last dimension fastest.
+  The cell key is the row-major linear index, the contiguous dimension fastest.
 * **Build (``build``; ``memory.refresh_index``).** Slots sorted by cell key (invalid slots get
   a sentinel key and sort last), a sorted copy of the points, and ``starts`` (T + 1,): the
   first sorted position of every cell (histogram + cumulative sum). O(N log N) sort + O(T).
-* **Query (``select``).** The 3^d cells around the query cell form 3^(d-1) contiguous key
-  ranges (the 3 cells along the last dimension are adjacent keys), i.e. at most 3^(d-1)
+* **Query (``select``).** The cells around the query cell form 3^(d-1) contiguous key
+  ranges (the cells along the contiguous dimension are adjacent keys), i.e. at most 3^(d-1)
   segments of the sorted arrays. One more segment holds the slots written since the last
   build (``n_new`` writes starting at slot ``h0``, ring-buffer order), scanned by brute force.
   The concatenation of the segments (M candidates) is scanned in chunks of ``index_chunk``
-  by a ``lax.while_loop`` (ceil(M / chunk) trips, so any cell occupancy is exact -- a full or
-  overflowing cell just costs more trips) keeping a running top-k of the squared distances.
+  by a ``lax.while_loop`` (about ceil(M / chunk) trips, so any cell occupancy is exact -- a
+  full or overflowing cell just costs more trips) keeping a running top-k of the squared
+  distances (``lax.top_k`` over k + chunk values per trip: it dominates the cost on CPU).
+  The first trip is peeled with a smaller chunk (``_FIRST_CHUNK``), so a sparse neighbourhood
+  costs one small top_k.
   With ``full_policy="overwrite_oldest"`` an indexed slot overwritten since the build is
   masked out of the index segments (it appears, with its new point, in the new-writes
   segment), so no slot is ever counted twice.
@@ -52,6 +56,10 @@ import numpy as np
 _MAX_CELLS = 1 << 22
 #: Relative margin of the cell side over k_thresh (float32 round-off of cell coordinates).
 _SIDE_MARGIN = 1e-3
+#: Candidates read by the first (peeled) trip of the scan; later trips read ``index_chunk``.
+_FIRST_CHUNK = 64
+#: Subdivision of the contiguous dimension (cells of side k_thresh / _FINE along it).
+_FINE = 4
 #: Points merged into the index per O(N) pass of ``refresh``.
 _MERGE_WINDOW = 1024
 #: Largest number of cells along one dimension (keeps the coordinate round-off << margin).
@@ -78,14 +86,21 @@ class GridIndex(NamedTuple):
 
 
 class Geometry(NamedTuple):
-    """Static grid geometry (Python floats / ints)."""
+    """Static grid geometry (Python floats / ints).
+
+    ``contig`` is the dimension with stride 1: cells along it are adjacent keys, so the
+    cells c - ``reach`` .. c + ``reach`` along it are one contiguous range of the sorted
+    arrays. It is cut finer (side about k_thresh / ``_FINE``), which shrinks the scanned
+    region along it from 3 to about 2 + 2 / _FINE cells of side k_thresh at no extra cost.
+    """
 
     lo: Tuple[float, ...]
     inv_side: Tuple[float, ...]
     cells: Tuple[int, ...]
     strides: Tuple[int, ...]
     n_cells: int
-
+    contig: int
+    reach: int
 
 def default_bounds(config) -> Tuple[Tuple[float, float], ...]:
     """Scaled range [lo, hi] of each input dimension that the grid covers.
@@ -115,19 +130,27 @@ def default_bounds(config) -> Tuple[Tuple[float, float], ...]:
 def geometry(config) -> Geometry:
     """The static grid of a config (cached: configs are hashable)."""
     bounds = default_bounds(config)
+    d = len(bounds)
     side0 = config.k_thresh * (1.0 + _SIDE_MARGIN)
     widths = [max(hi - lo, 0.0) for lo, hi in bounds]
-    cells = [max(1, min(_MAX_PER_DIM, int(math.ceil(w / side0)))) for w in widths]
+    # The contiguous dimension: the widest state dimension (the last one on ties).
+    contig = max(range(config.state_dim), key=lambda i: (widths[i], i))
+    target = [side0 / _FINE if i == contig else side0 for i in range(d)]
+    cells = [max(1, min(_MAX_PER_DIM, int(math.ceil(w / t)))) for w, t in zip(widths, target)]
     while int(np.prod(cells, dtype=np.int64)) > _MAX_CELLS:
         i = int(np.argmax(cells))
         cells[i] = max(1, cells[i] // 2)
-    sides = [max(side0, w / c) for w, c in zip(widths, cells)]
-    strides = [1] * len(cells)
-    for i in range(len(cells) - 2, -1, -1):
-        strides[i] = strides[i + 1] * cells[i + 1]
+    sides = [max(t, w / c) for t, w, c in zip(target, widths, cells)]
+    # Points within k_thresh differ by at most `reach` cells along contig (side0 > k_thresh).
+    reach = max(1, int(math.ceil(side0 / sides[contig] - 1e-9)))
+    strides = [0] * d
+    stride = 1
+    for i in [contig] + [i for i in range(d - 1, -1, -1) if i != contig]:
+        strides[i] = stride
+        stride *= cells[i]
     return Geometry(lo=tuple(lo for lo, _ in bounds), inv_side=tuple(1.0 / s for s in sides),
                     cells=tuple(cells), strides=tuple(strides),
-                    n_cells=int(np.prod(cells, dtype=np.int64)))
+                    n_cells=int(np.prod(cells, dtype=np.int64)), contig=contig, reach=reach)
 
 
 def cell_coords(geo: Geometry, z: jax.Array) -> jax.Array:
@@ -260,21 +283,23 @@ def _row_offsets(d: int) -> np.ndarray:
 def segments(config, index: GridIndex, z: jax.Array):
     """The candidate segments of query z (d,): (starts (R,), lengths (R + 1,)).
 
-    Segments 0..R-1 are key ranges of the sorted arrays (3 adjacent cells along the last
-    dimension for each of the 3^(d-1) combinations of the other coordinates; rows off the
-    grid have length 0); segment R is the n_new slots written since the build.
+    Segments 0..R-1 are key ranges of the sorted arrays (2 reach + 1 adjacent cells along the
+    contiguous dimension for each of the 3^(d-1) combinations of the other coordinates; rows
+    off the grid have length 0); segment R is the n_new slots written since the last refresh.
     """
     geo = geometry(config)
     d = config.dim
     c = cell_coords(geo, z)                                          # (d,)
+    others = [i for i in range(d) if i != geo.contig]
     offs = jnp.asarray(_row_offsets(d))                              # (R, d-1)
-    row_c = c[:d - 1][None, :] + offs                                # (R, d-1)
-    cells = jnp.asarray(geo.cells[:d - 1], jnp.int32)
-    strides = jnp.asarray(geo.strides[:d - 1], jnp.int32)
+    row_c = c[jnp.asarray(others, jnp.int32)][None, :] + offs if others else offs
+    cells = jnp.asarray([geo.cells[i] for i in others], jnp.int32)
+    strides = jnp.asarray([geo.strides[i] for i in others], jnp.int32)
     row_ok = jnp.all((row_c >= 0) & (row_c < cells[None, :]), axis=1)
     base = jnp.sum(jnp.clip(row_c, 0, cells[None, :] - 1) * strides[None, :], axis=1)
-    last_lo = jnp.maximum(c[d - 1] - 1, 0)
-    last_hi = jnp.minimum(c[d - 1] + 1, geo.cells[d - 1] - 1)
+    cc = c[geo.contig]
+    last_lo = jnp.maximum(cc - geo.reach, 0)
+    last_hi = jnp.minimum(cc + geo.reach, geo.cells[geo.contig] - 1)
     seg_start = index.starts[base + last_lo]
     seg_end = index.starts[base + last_hi + 1]
     seg_len = jnp.where(row_ok, seg_end - seg_start, 0)
@@ -299,34 +324,28 @@ def select(config, points: jax.Array, head: jax.Array, index: GridIndex, z: jax.
     ends = jnp.cumsum(lengths)
     begins = ends - lengths                                          # (R + 1,)
     total = ends[-1]
-    lane = jnp.arange(chunk, dtype=jnp.int32)
     seg_start_ext = jnp.concatenate([seg_start, jnp.zeros((1,), jnp.int32)])
 
-    def cond(carry):
-        return carry[0] < total
-
-    def body(carry):
-        p0, best_d2, best_idx = carry
-        p = p0 + lane                                                # (C,)
-        seg = jnp.sum(p[:, None] >= begins[None, 1:], axis=1)        # (C,) in [0, R]
+    def trip(p0, best_d2, best_idx, width):
+        p = p0 + jnp.arange(width, dtype=jnp.int32)                  # (width,)
+        seg = jnp.sum(p[:, None] >= begins[None, 1:], axis=1)        # in [0, R]
         off = p - begins[seg]
-        in_range = p < total
         is_new = seg == n_seg
         pos = jnp.clip(seg_start_ext[seg] + off, 0, n - 1)
         new_slot = (h0 + off) % n
         slot = jnp.where(is_new, new_slot, index.order[pos])
         pts = jnp.where(is_new[None, :], points[:, new_slot], index.spoints[:, pos])
         d2 = _sqdist(pts, z)
-        ok = in_range & (d2 <= r2)
+        ok = (p < total) & (d2 <= r2)
         if ring:  # an indexed slot rewritten since the build lives in the new-writes segment
             stale = ((slot - h0) % n) < index.n_new
             ok = ok & (is_new | ~stale)
-        d2 = jnp.where(ok, d2, jnp.inf)
-        neg, which = jax.lax.top_k(-jnp.concatenate([best_d2, d2]), k)
-        best_idx = jnp.concatenate([best_idx, slot])[which]
-        return p0 + chunk, -neg, best_idx
+        neg, which = jax.lax.top_k(-jnp.concatenate([best_d2, jnp.where(ok, d2, jnp.inf)]), k)
+        return p0 + width, -neg, jnp.concatenate([best_idx, slot])[which]
 
-    init = (jnp.zeros((), jnp.int32), jnp.full((k,), jnp.inf, jnp.float32),
-            jnp.zeros((k,), jnp.int32))
-    _, best_d2, best_idx = jax.lax.while_loop(cond, body, init)
+    first = min(_FIRST_CHUNK, chunk)
+    carry = trip(jnp.zeros((), jnp.int32), jnp.full((k,), jnp.inf, jnp.float32),
+                 jnp.zeros((k,), jnp.int32), first)
+    _, best_d2, best_idx = jax.lax.while_loop(lambda c: c[0] < total,
+                                              lambda c: trip(*c, chunk), carry)
     return best_idx, best_d2, best_d2 <= r2

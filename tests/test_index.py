@@ -92,13 +92,15 @@ def test_config_validation_names_the_field():
 def test_geometry_cells_at_least_k_thresh():
     cfg = _cfg("grid")
     geo = gi.geometry(cfg)
-    for inv in geo.inv_side:
-        assert 1.0 / inv >= cfg.k_thresh
-    assert geo.n_cells == int(np.prod(geo.cells))
+    for i, inv in enumerate(geo.inv_side):   # the contiguous dim is searched `reach` cells out
+        assert (geo.reach if i == geo.contig else 1) / inv >= cfg.k_thresh
+    assert geo.n_cells == int(np.prod(geo.cells)) and geo.strides[geo.contig] == 1
     # A huge grid is coarsened, never finer than k_thresh.
     big = HedgerConfig(5, 1, bandwidth=1e-3, neighbour_index="grid", capacity=100)
     g2 = gi.geometry(big)
-    assert g2.n_cells <= gi._MAX_CELLS and min(1.0 / v for v in g2.inv_side) >= big.k_thresh
+    assert g2.n_cells <= gi._MAX_CELLS
+    assert all((g2.reach if i == g2.contig else 1) / v >= big.k_thresh
+               for i, v in enumerate(g2.inv_side))
 
 
 def test_uniform_random_matches_brute():
@@ -131,9 +133,11 @@ def test_cell_borders_and_threshold_distance():
     cb, cg = _pair()
     geo = gi.geometry(cg)
     side = np.float32(1.0 / geo.inv_side[0])
+    fine = np.float32(1.0 / geo.inv_side[1])                  # dim 1 is the finely cut one
+    assert geo.contig == 1 and geo.reach > 1
     r = np.float32(cg.k_thresh)
-    grid = (np.arange(0, 8, dtype=np.float32) * side).astype(np.float32)
-    xs, vs = np.meshgrid(grid, grid)
+    xs, vs = np.meshgrid((np.arange(0, 8, dtype=np.float32) * side).astype(np.float32),
+                         (np.arange(0, 8, dtype=np.float32) * fine).astype(np.float32))
     border = np.stack([xs.ravel(), vs.ravel(), np.zeros(xs.size, np.float32)], 1)
     q = border[:40].copy()
     ring = np.concatenate([q + np.array([r, 0, 0], np.float32), q - np.array([0, r, 0], np.float32),
