@@ -36,7 +36,13 @@ MOUNTAIN_CAR = dict(bandwidth=0.015, alpha=0.8, gamma=0.8)
 #: Continuous actions: the action is scaled by 0.1 so the whole range [-1, 1] spans 0.2 in
 #: scaled units, i.e. ~6 neighbour radii (see README, "Sensitivity").
 MOUNTAIN_CAR_CONTINUOUS = dict(MOUNTAIN_CAR, action_scale=0.1)
-CORRIDOR = dict(bandwidth=0.06, alpha=0.2, gamma=0.99, action_scale=0.25)
+#: Corridor (see experiments/CORRIDOR_NOTES.md): h = 0.05, actions raw (rad/s), and the
+#: distance-to-end dimension weighted 10x less than the [0, 1] scaling (the value changes
+#: smoothly along the corridor, the steering decision does not depend on it).
+CORRIDOR = dict(bandwidth=0.05, alpha=0.2, gamma=0.99, action_scale=1.0)
+CORRIDOR_SCALE_FACTORS = (1.0, 1.0, 0.1)
+#: Training runs start at the beginning of the evaluated section, as the robot's runs did.
+CORRIDOR_PARAMS = (("train_x_max", 0.5),)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -47,6 +53,8 @@ class Variant:
     items so the variant is hashable). phase1: None, "simulated_person" (11 mountain-car
     demonstrations from a file-format round trip) or "hand_coded" (the corridor controller
     in control for ``phase1_episodes`` runs). x_axis: "points" or "episodes".
+    state_scale_factors: multipliers on the [0, 1] state scaling, per state dimension.
+    env_params: overrides of the environment's default params (name, value) pairs.
     """
 
     label: str
@@ -56,6 +64,8 @@ class Variant:
     phase1: Optional[str] = None
     phase1_episodes: int = 0
     x_axis: str = "episodes"
+    state_scale_factors: Optional[Tuple[float, ...]] = None
+    env_params: Tuple[Tuple[str, Any], ...] = ()
 
     def hedger_kwargs(self) -> Dict[str, Any]:
         return dict(self.hedger)
@@ -146,11 +156,13 @@ def build_figure(name: str, mode: str = "quick") -> Figure:
             env="corridor",
             hedger=_items(CORRIDOR, capacity=12_000),
             run=RunConfig(n_blocks=6, episodes_per_block=5, exploration="gaussian",
-                          noise_std=0.3, eval_episodes=50 if full else 20,
+                          noise_std=0.3, eval_episodes=100 if full else 40,
                           eval_max_steps=200),
             phase1="hand_coded",
             phase1_episodes=25,
             x_axis="episodes",
+            state_scale_factors=CORRIDOR_SCALE_FACTORS,
+            env_params=CORRIDOR_PARAMS,
         )
         return Figure("fig5", "Figure 5: corridor following (simulated robot)", (variant,),
                       "phase-two training runs",

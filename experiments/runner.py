@@ -67,7 +67,8 @@ def build_variant(variant: Variant):
     import envs
 
     env = envs.make(variant.env)
-    config = HedgerConfig.for_env(env, **variant.hedger_kwargs())
+    config = config_of(variant)
+    env_params = env_params_of(env, variant)
     phase1 = None
     info: Dict[str, Any] = {}
     if variant.phase1 == "simulated_person":
@@ -85,7 +86,7 @@ def build_variant(variant: Variant):
         info = {"phase1_episodes": variant.phase1_episodes, "phase1_policy": "hand_coded"}
     elif variant.phase1 is not None:
         raise ValueError(f"unknown phase1 source {variant.phase1!r}")
-    train = make_train(env, config, variant.run, phase1=phase1)
+    train = make_train(env, config, variant.run, phase1=phase1, env_params=env_params)
     return env, config, train, info
 
 
@@ -223,6 +224,7 @@ def run_variant(variant: Variant, seeds: List[int], out_dir: str, *, base_seed: 
         "label": variant.label, "env": variant.env, "x_axis": variant.x_axis,
         "seeds": seeds, "base_seed": base_seed, "phase1": variant.phase1, "phase1_info": info,
         "hedger_config": dataclasses.asdict(config_of(variant)),
+        "env_params": dict(variant.env_params),
         "run_config": dataclasses.asdict(variant.run),
         "versions": versions(), "complete": True, **merged,
     }
@@ -234,7 +236,20 @@ def config_of(variant: Variant) -> HedgerConfig:
     """The HedgerConfig a variant runs with."""
     import envs
 
-    return HedgerConfig.for_env(envs.make(variant.env), **variant.hedger_kwargs())
+    config = HedgerConfig.for_env(envs.make(variant.env), **variant.hedger_kwargs())
+    if variant.state_scale_factors is not None:
+        factors = tuple(variant.state_scale_factors) + (1.0,) * config.action_dim
+        config = config.replace(input_scale=tuple(
+            s * f for s, f in zip(config.input_scale, factors)))
+    return config
+
+
+def env_params_of(env: Any, variant: Variant) -> Any:
+    """The env's default params with the variant's overrides (as float32 leaves)."""
+    params = env.default_params()
+    if variant.env_params:
+        params = dataclasses.replace(params, **{k: jnp.float32(v) for k, v in variant.env_params})
+    return params
 
 
 def versions() -> Dict[str, str]:
