@@ -14,7 +14,7 @@ from typing import Any, Optional, Tuple
 FULL_POLICIES = ("error", "overwrite_oldest")
 NEIGHBOUR_INDEXES = ("auto", "brute", "grid")
 #: ``neighbour_index="auto"`` uses the grid index from this capacity up (measured crossover).
-AUTO_GRID_CAPACITY = 50_000
+AUTO_GRID_CAPACITY = 16_384
 
 
 def _tuple_of_floats(name: str, value: Any, length: int) -> Tuple[float, ...]:

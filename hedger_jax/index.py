@@ -52,7 +52,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-#: Largest number of grid cells (size of the ``starts`` table).
+#: Largest number of grid cells (size of the ``starts`` table); see ``max_cells``.
 _MAX_CELLS = 1 << 22
 #: Relative margin of the cell side over k_thresh (float32 round-off of cell coordinates).
 _SIDE_MARGIN = 1e-3
@@ -102,6 +102,12 @@ class Geometry(NamedTuple):
     contig: int
     reach: int
 
+def max_cells(capacity: int) -> int:
+    """Cell budget: about 4 cells per slot (a refresh costs O(capacity + cells)), at least
+    4096 and at most ``_MAX_CELLS``."""
+    return int(min(_MAX_CELLS, max(1 << 12, 4 * capacity)))
+
+
 def default_bounds(config) -> Tuple[Tuple[float, float], ...]:
     """Scaled range [lo, hi] of each input dimension that the grid covers.
 
@@ -137,7 +143,8 @@ def geometry(config) -> Geometry:
     contig = max(range(config.state_dim), key=lambda i: (widths[i], i))
     target = [side0 / _FINE if i == contig else side0 for i in range(d)]
     cells = [max(1, min(_MAX_PER_DIM, int(math.ceil(w / t)))) for w, t in zip(widths, target)]
-    while int(np.prod(cells, dtype=np.int64)) > _MAX_CELLS:
+    limit = max_cells(config.capacity)
+    while int(np.prod(cells, dtype=np.int64)) > limit:
         i = int(np.argmax(cells))
         cells[i] = max(1, cells[i] // 2)
     sides = [max(t, w / c) for t, w, c in zip(target, widths, cells)]

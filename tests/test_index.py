@@ -98,7 +98,7 @@ def test_geometry_cells_at_least_k_thresh():
     # A huge grid is coarsened, never finer than k_thresh.
     big = HedgerConfig(5, 1, bandwidth=1e-3, neighbour_index="grid", capacity=100)
     g2 = gi.geometry(big)
-    assert g2.n_cells <= gi._MAX_CELLS
+    assert g2.n_cells <= gi.max_cells(100)
     assert all((g2.reach if i == g2.contig else 1) / v >= big.k_thresh
                for i, v in enumerate(g2.inv_side))
 

@@ -1,0 +1,438 @@
+"""hedger-jax benchmarks, all in one process, each speed also as a ratio against a baseline
+measured in the same process (the float64 NumPy + cKDTree HEDGER of ``numpy_baseline.py``).
+
+    python benchmarks/run.py [--quick] [--out DIR] [--sections predict,select,train,seeds,compile]
+
+Writes ``DIR/benchmark.md`` (tables) and ``DIR/benchmark.json`` (default DIR:
+``benchmarks/results``). Sections:
+
+  predict  batched Algorithm-1 predictions/s at capacities 1e3..1e6 (brute force and grid
+           index) vs the baseline (cKDTree query + per-query float64 LWR/IVH);
+  select   batched neighbour selection: grid index vs ``cKDTree.query`` on the same points
+           and queries (k = max_neighbours, distance_upper_bound = k_thresh);
+  train    training points/s on mountain-car episodes (epsilon-greedy rollout + reverse
+           replay, index refreshed per episode), discrete and continuous, vs the baseline;
+  seeds    total training points/s vs the number of vmapped seeds;
+  compile  jit compile time of a full ``make_train(...).train``;
+  and the peak resident memory (``resource.getrusage`` maxrss) after each section.
+
+Data: mountain-car-like scaled inputs (state uniform in [0, 1]^2, action in {-1, 0, 1} or
+[-1, 1]), the library's default bandwidth 0.015 (k_thresh 0.032) and max_neighbours 32.
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import functools
+import json
+import os
+import platform
+import resource
+import sys
+import time
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+from scipy.spatial import cKDTree  # noqa: E402
+
+from envs.mountain_car import MountainCar  # noqa: E402
+from hedger_jax.agent import RunConfig, explore_action, make_train, rollout, train_prefix  # noqa: E402
+from hedger_jax.config import HedgerConfig  # noqa: E402
+from hedger_jax.memory import init_memory, refresh_index, select_neighbours  # noqa: E402
+from hedger_jax.predict import predict_scaled  # noqa: E402
+from numpy_baseline import NumpyHedger, time_episodes  # noqa: E402
+
+DISCRETE = ((-1.0,), (0.0,), (1.0,))
+
+
+def maxrss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def timeit(fn, min_time=0.5, max_reps=50):
+    """(wall seconds, process CPU seconds) per call of fn() (blocking), after a warm-up call.
+
+    CPU seconds (all threads of this process) are the per-core measure: on a shared, loaded
+    machine the wall time also counts the time other processes held the cores.
+    """
+    jax.block_until_ready(fn())
+    n, t0, c0 = 0, time.perf_counter(), time.process_time()
+    while True:
+        jax.block_until_ready(fn())
+        n += 1
+        dt = time.perf_counter() - t0
+        if dt >= min_time or n >= max_reps:
+            return dt / n, (time.process_time() - c0) / n
+
+
+def mc_config(capacity, kind, continuous=False, **kw):
+    env = MountainCar(continuous=continuous)
+    return HedgerConfig.for_env(env, capacity=capacity, neighbour_index=kind, **kw)
+
+
+def fake_points(n, rng, continuous=False):
+    """(n, 3) scaled mountain-car-like inputs and small positive values."""
+    z = np.empty((n, 3), np.float32)
+    z[:, :2] = rng.uniform(0, 1, (n, 2))
+    z[:, 2] = rng.uniform(-1, 1, n) if continuous else rng.integers(-1, 2, n)
+    return z, rng.uniform(0, 1e-2, n).astype(np.float32)
+
+
+def filled_memory(cfg, z, v):
+    n = z.shape[0]
+    pts = np.zeros((cfg.dim, cfg.capacity), np.float32)
+    pts[:, :n] = z.T
+    vals = np.zeros(cfg.capacity, np.float32)
+    vals[:n] = v
+    m = init_memory(cfg)._replace(points=jnp.asarray(pts), values=jnp.asarray(vals),
+                                  size=jnp.int32(n), head=jnp.int32(n % cfg.capacity))
+    if m.index is not None:
+        m = jax.jit(functools.partial(refresh_index, cfg))(m._replace(index=None))
+    return m
+
+
+def baseline_agent(cfg, z, v):
+    ag = NumpyHedger(dim=cfg.dim, capacity=cfg.capacity, bandwidth=cfg.bandwidth,
+                     max_neighbours=cfg.max_neighbours, k_min=cfg.k_min, alpha=cfg.alpha,
+                     gamma=cfg.gamma, offset=cfg.input_offset, scale=cfg.input_scale,
+                     discrete_actions=cfg.discrete_actions, action_low=cfg.action_low[0],
+                     action_high=cfg.action_high[0])
+    n = z.shape[0]
+    ag.points[:n] = z
+    ag.values[:n] = v
+    ag.size = n
+    ag.refresh()
+    return ag
+
+
+# ---------------------------------------------------------------------- sections
+def bench_predict(caps, batch, rng, results):
+    rows = []
+    queries, _ = fake_points(batch, rng)
+    q = jnp.asarray(queries)
+    for cap in caps:
+        z, v = fake_points(cap, rng)
+        row = {"capacity": cap}
+        for kind in ("brute", "grid"):
+            if kind == "brute" and cap > 300_000:
+                continue
+            cfg = mc_config(cap, kind)
+            mem = filled_memory(cfg, z, v)
+            nq = batch if kind == "grid" or cap <= 10_000 else max(64, batch * 10_000 // cap)
+            f = jax.jit(jax.vmap(lambda m, zz, cfg=cfg: predict_scaled(cfg, m, zz).value,
+                                 (None, 0)))
+            dt, ct = timeit(lambda: f(mem, q[:nq]))
+            row[f"{kind}_per_s"] = nq / ct
+            row[f"{kind}_per_wall_s"] = nq / dt
+            if kind == "grid":
+                row["mean_neighbours"] = float(jnp.mean(jax.jit(jax.vmap(
+                    lambda zz: select_neighbours(cfg, mem, zz).mask.sum()))(q[:256])))
+            del mem
+        cfg = mc_config(cap, "brute")
+        ag = baseline_agent(cfg, z.astype(np.float64), v.astype(np.float64))
+        nb = 200
+        t0, c0 = time.perf_counter(), time.process_time()
+        ag.predict_scaled(queries[:nb].astype(np.float64))
+        row["baseline_per_s"] = nb / (time.process_time() - c0)
+        row["baseline_per_wall_s"] = nb / (time.perf_counter() - t0)
+        for kind in ("brute", "grid"):
+            if f"{kind}_per_s" in row:
+                row[f"{kind}_ratio"] = row[f"{kind}_per_s"] / row["baseline_per_s"]
+        rows.append(row)
+        print("predict", row, flush=True)
+    results["predict"] = rows
+
+
+def bench_select(caps, batch, rng, results):
+    rows = []
+    queries, _ = fake_points(batch, rng)
+    q = jnp.asarray(queries)
+    for cap in caps:
+        z, v = fake_points(cap, rng)
+        cfg = mc_config(cap, "grid")
+        t0 = time.perf_counter()
+        mem = filled_memory(cfg, z, v)
+        jax.block_until_ready(mem)
+        f = jax.jit(jax.vmap(lambda m, zz: select_neighbours(cfg, m, zz), (None, 0)))
+        dt, ct = timeit(lambda: f(mem, q))
+        t0 = time.perf_counter()
+        tree = cKDTree(z)
+        t_tree = time.perf_counter() - t0
+        row = {"capacity": cap, "grid_per_s": batch / ct, "grid_per_wall_s": batch / dt,
+               "kdtree_build_s": t_tree}
+        for workers in (1, -1):
+            t0, c0, n = time.perf_counter(), time.process_time(), 0
+            while time.perf_counter() - t0 < 0.5:
+                tree.query(queries, k=cfg.max_neighbours, distance_upper_bound=cfg.k_thresh,
+                           workers=workers)
+                n += 1
+            row[f"kdtree_w{workers}_per_s"] = batch * n / (time.process_time() - c0)
+            row[f"kdtree_w{workers}_per_wall_s"] = batch * n / (time.perf_counter() - t0)
+        row["ratio_vs_kdtree_w1"] = row["grid_per_s"] / row["kdtree_w1_per_s"]
+        row["ratio_vs_kdtree_all"] = row["grid_per_s"] / row["kdtree_w-1_per_s"]
+        # exactness spot check against cKDTree (distances; ties aside)
+        out = f(mem, q[:256])
+        dk, _ = tree.query(queries[:256], k=cfg.max_neighbours, distance_upper_bound=cfg.k_thresh)
+        cnt_k = np.isfinite(dk).sum(1)
+        row["counts_match_kdtree"] = float(np.mean(np.asarray(out.mask.sum(1)) == cnt_k))
+        # merge-refresh cost after one episode of new points
+        m2 = mem._replace(index=mem.index._replace(n_new=jnp.int32(min(200, cap))))
+        rf = jax.jit(functools.partial(refresh_index, cfg))
+        row["refresh_200_new_s"] = timeit(lambda: rf(m2), min_time=0.3, max_reps=5)[1]
+        rows.append(row)
+        print("select", row, flush=True)
+        del mem, m2
+    results["select"] = rows
+
+
+def episodes_fn(cfg, continuous, n_episodes):
+    env = MountainCar(continuous=continuous)
+    params = env.default_params()
+    run = RunConfig()
+
+    def act(k, obs, memory):
+        return explore_action(cfg, run, memory, obs, k), memory
+
+    def one(memory, key):
+        memory = refresh_index(cfg, memory)
+        k1, k2 = jax.random.split(key)
+        obs0, s0 = env.reset(k1, params)
+        ep, length = rollout(env, params, act, k2, env.max_steps, obs0, s0, memory)
+        return train_prefix(cfg, memory, ep, length), length
+
+    def run_eps(memory, key):
+        memory, lengths = jax.lax.scan(one, memory, jax.random.split(key, n_episodes))
+        return memory, jnp.sum(lengths)
+
+    return run_eps
+
+
+def time_training(cfg, continuous, mem, n_episodes, n_seeds=None):
+    fn = episodes_fn(cfg, continuous, n_episodes)
+    if n_seeds is not None:
+        fn = jax.vmap(fn)
+    f = jax.jit(fn, donate_argnums=(0,))
+    key = jax.random.PRNGKey(0)
+    keys = key if n_seeds is None else jax.random.split(key, n_seeds)
+    t0 = time.perf_counter()
+    mem, pts = jax.block_until_ready(f(mem, keys))              # compile + warm-up
+    t_first = time.perf_counter() - t0
+    keys = jax.random.split(jax.random.PRNGKey(1), n_seeds) if n_seeds else jax.random.PRNGKey(1)
+    t0, c0 = time.perf_counter(), time.process_time()
+    mem, pts = jax.block_until_ready(f(mem, keys))
+    dt, ct = time.perf_counter() - t0, time.process_time() - c0
+    n = float(np.sum(np.asarray(pts)))
+    return n / ct, t_first, n / dt
+
+
+def bench_train(settings, rng, results, quick):
+    rows = []
+    for continuous, cap, prefill in settings:
+        z, v = fake_points(prefill, rng, continuous)
+        row = {"actions": "continuous" if continuous else "discrete", "capacity": cap,
+               "prefill": prefill}
+        n_eps = 2 if quick else 4
+        for kind in ("brute", "grid"):
+            if kind == "brute" and cap > 100_000:
+                continue
+            cfg = mc_config(cap, kind, continuous)
+            pps, t_first, wall = time_training(cfg, continuous, filled_memory(cfg, z, v), n_eps)
+            row[f"{kind}_points_per_s"] = pps
+            row[f"{kind}_points_per_wall_s"] = wall
+            row[f"{kind}_first_call_s"] = t_first
+        cfg = mc_config(cap, "brute", continuous)
+        ag = baseline_agent(cfg, z.astype(np.float64), v.astype(np.float64))
+        c0 = time.process_time()
+        pts, dt = time_episodes(ag, 1 if quick else 2, seed=0, continuous=continuous)
+        row["baseline_points_per_s"] = pts / (time.process_time() - c0)
+        row["baseline_points_per_wall_s"] = pts / dt
+        for kind in ("brute", "grid"):
+            if f"{kind}_points_per_s" in row:
+                row[f"{kind}_ratio"] = row[f"{kind}_points_per_s"] / row["baseline_points_per_s"]
+        rows.append(row)
+        print("train", row, flush=True)
+    results["train"] = rows
+
+
+def bench_seeds(seed_counts, cap, prefill, rng, results, quick, kind, baseline_pps=None):
+    rows = []
+    z, v = fake_points(prefill, rng)
+    cfg = mc_config(cap, kind)
+    base = None
+    for n in seed_counts:
+        mem = filled_memory(cfg, z, v)
+        mems = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (n,) + x.shape).copy(), mem)
+        del mem
+        pps, t_first, wall = time_training(cfg, False, mems, 1 if quick else 2, n_seeds=n)
+        base = base or pps
+        rows.append({"seeds": n, "index": kind, "capacity": cap, "prefill": prefill,
+                     "total_points_per_s": pps, "total_points_per_wall_s": wall,
+                     "per_seed_points_per_s": pps / n, "speedup_vs_1_seed": pps / base,
+                     "ratio_vs_baseline": (pps / baseline_pps) if baseline_pps else None})
+        print("seeds", rows[-1], flush=True)
+        del mems
+    results.setdefault("seeds", []).extend(rows)
+
+
+def bench_compile(results):
+    rows = []
+    run = RunConfig(n_blocks=2, episodes_per_block=2, eval_episodes=16)
+    for continuous, kind in ((False, "brute"), (False, "grid"), (True, "brute"), (True, "grid")):
+        env = MountainCar(continuous=continuous)
+        cfg = HedgerConfig.for_env(env, capacity=20_000, neighbour_index=kind)
+        train = make_train(env, cfg, run).train
+        t0 = time.perf_counter()
+        lowered = jax.jit(train).lower(jax.random.PRNGKey(0))
+        t_lower = time.perf_counter() - t0
+        t0, c0 = time.perf_counter(), time.process_time()
+        lowered.compile()
+        t_comp, c_comp = time.perf_counter() - t0, time.process_time() - c0
+        rows.append({"actions": "continuous" if continuous else "discrete", "index": kind,
+                     "trace_lower_s": t_lower, "compile_s": t_comp, "compile_cpu_s": c_comp,
+                     "total_s": t_lower + t_comp})
+        print("compile", rows[-1], flush=True)
+    results["compile"] = rows
+
+
+# ---------------------------------------------------------------------- report
+def fmt(x, nd=0):
+    if x is None:
+        return "-"
+    if isinstance(x, float):
+        return f"{x:,.{nd}f}"
+    return str(x)
+
+
+def markdown(results) -> str:
+    m = results["machine"]
+    out = [f"# hedger-jax benchmarks ({results['date']})", "",
+           f"Machine: {m['cpu_count']} CPU cores, {m['platform']}, jax {m['jax']} "
+           f"({m['backend']}), load average at start {m['load_start']}, at end "
+           f"{m.get('load_end', '-')}. Mode: {'quick' if results['quick'] else 'full'}.", "",
+           "Baseline = float64 NumPy + scipy cKDTree HEDGER in the same process "
+           "(benchmarks/numpy_baseline.py, single-threaded). Ratio = ours / baseline. "
+           "Rates are per CPU-second of this process (time.process_time, all threads: the "
+           "per-core measure, robust to other processes' load); wall-clock rates are in the JSON "
+           "(`*_per_wall_s`) and, for training, in the tables.", ""]
+    if "predict" in results:
+        out += ["## (a) Batched predictions/s (Algorithm 1)", "",
+                "| capacity | brute /s | grid /s | mean neighbours | baseline /s | brute ratio | "
+                "grid ratio |", "|---|---|---|---|---|---|---|"]
+        for r in results["predict"]:
+            out.append(f"| {r['capacity']:,} | {fmt(r.get('brute_per_s'))} | "
+                       f"{fmt(r.get('grid_per_s'))} | {fmt(r.get('mean_neighbours'), 1)} | "
+                       f"{fmt(r['baseline_per_s'])} | {fmt(r.get('brute_ratio'), 1)} | "
+                       f"{fmt(r.get('grid_ratio'), 1)} |")
+        out.append("")
+    if "select" in results:
+        out += ["## Batched neighbour selection: grid index vs cKDTree.query (same points, "
+                "same queries)", "",
+                "| capacity | grid /s | cKDTree 1 worker /s | cKDTree all cores /s | ratio vs 1 "
+                "worker | ratio vs all | tree build s | grid refresh (200 new) s | counts match |",
+                "|---|---|---|---|---|---|---|---|---|"]
+        for r in results["select"]:
+            out.append(f"| {r['capacity']:,} | {fmt(r['grid_per_s'])} | "
+                       f"{fmt(r['kdtree_w1_per_s'])} | {fmt(r['kdtree_w-1_per_s'])} | "
+                       f"{fmt(r['ratio_vs_kdtree_w1'], 2)} | {fmt(r['ratio_vs_kdtree_all'], 2)} | "
+                       f"{fmt(r['kdtree_build_s'], 3)} | {fmt(r['refresh_200_new_s'], 4)} | "
+                       f"{fmt(r['counts_match_kdtree'], 3)} |")
+        out.append("")
+    if "train" in results:
+        out += ["## (b) Training points/s, mountain car (epsilon-greedy episodes + reverse "
+                "replay, one seed)", "",
+                "| actions | capacity | stored points | brute /s | grid /s | grid /s wall | "
+                "baseline /s | brute ratio | grid ratio |", "|---|---|---|---|---|---|---|---|---|"]
+        for r in results["train"]:
+            out.append(f"| {r['actions']} | {r['capacity']:,} | {r['prefill']:,} | "
+                       f"{fmt(r.get('brute_points_per_s'))} | {fmt(r.get('grid_points_per_s'))} | "
+                       f"{fmt(r.get('grid_points_per_wall_s'))} | "
+                       f"{fmt(r['baseline_points_per_s'])} | {fmt(r.get('brute_ratio'), 1)} | "
+                       f"{fmt(r.get('grid_ratio'), 1)} |")
+        out.append("")
+    if "seeds" in results:
+        out += ["## (c) Total training points/s vs vmapped seeds (discrete)", "",
+                "| index | capacity | stored | seeds | total points/s | wall | per seed | vs 1 seed "
+                "| vs baseline |", "|---|---|---|---|---|---|---|---|---|"]
+        for r in results["seeds"]:
+            out.append(f"| {r['index']} | {r['capacity']:,} | {r['prefill']:,} | {r['seeds']} | "
+                       f"{fmt(r['total_points_per_s'])} | {fmt(r['total_points_per_wall_s'])} | "
+                       f"{fmt(r['per_seed_points_per_s'])} | "
+                       f"{fmt(r['speedup_vs_1_seed'], 2)} | {fmt(r['ratio_vs_baseline'], 1)} |")
+        out.append("")
+    if "compile" in results:
+        out += ["## (d) jit compile time of a full `make_train(...).train` (capacity 20,000)", "",
+                "| actions | index | trace+lower s | compile s (wall) | compile CPU s | total s |",
+                "|---|---|---|---|---|---|"]
+        for r in results["compile"]:
+            out.append(f"| {r['actions']} | {r['index']} | {fmt(r['trace_lower_s'], 1)} | "
+                       f"{fmt(r['compile_s'], 1)} | {fmt(r['compile_cpu_s'], 1)} | "
+                       f"{fmt(r['total_s'], 1)} |")
+        out.append("")
+    out += ["## (e) Peak resident memory (maxrss) after each section", "",
+            "| section | maxrss MB |", "|---|---|"]
+    for k, v in results["maxrss_mb"].items():
+        out.append(f"| {k} | {v:,.0f} |")
+    out.append("")
+    return "\n".join(out)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help="small sizes (about a minute)")
+    ap.add_argument("--out", default=os.path.join(ROOT, "benchmarks", "results"))
+    ap.add_argument("--sections", default="predict,select,train,seeds,compile")
+    args = ap.parse_args(argv)
+    sections = args.sections.split(",")
+    rng = np.random.default_rng(0)
+    results = {"date": datetime.datetime.now().isoformat(timespec="seconds"),
+               "quick": args.quick,
+               "machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(),
+                           "jax": jax.__version__, "backend": jax.default_backend(),
+                           "load_start": os.getloadavg()},
+               "maxrss_mb": {"start": maxrss_mb()}}
+    if args.quick:
+        caps, batch = [1_000, 10_000, 100_000], 1024
+        train_settings = [(False, 20_000, 10_000), (True, 20_000, 10_000)]
+        seed_counts = [1, 4, 16]
+    else:
+        caps, batch = [1_000, 10_000, 100_000, 300_000, 1_000_000], 4096
+        train_settings = [(False, 20_000, 10_000), (True, 20_000, 10_000),
+                          (False, 300_000, 200_000), (True, 300_000, 200_000),
+                          (False, 1_000_000, 900_000)]
+        seed_counts = [1, 4, 16, 64]
+    if "predict" in sections:
+        bench_predict(caps, batch, rng, results)
+        results["maxrss_mb"]["predict"] = maxrss_mb()
+    if "select" in sections:
+        bench_select(caps, batch, rng, results)
+        results["maxrss_mb"]["select"] = maxrss_mb()
+    if "train" in sections:
+        bench_train(train_settings, rng, results, args.quick)
+        results["maxrss_mb"]["train"] = maxrss_mb()
+    if "seeds" in sections:
+        base = next((r["baseline_points_per_s"] for r in results.get("train", [])
+                     if r["actions"] == "discrete" and r["capacity"] == 20_000), None)
+        for kind in ("brute", "grid"):
+            bench_seeds(seed_counts, 20_000, 10_000, rng, results, args.quick, kind, base)
+        results["maxrss_mb"]["seeds"] = maxrss_mb()
+    if "compile" in sections:
+        bench_compile(results)
+        results["maxrss_mb"]["compile"] = maxrss_mb()
+    results["machine"]["load_end"] = os.getloadavg()
+    os.makedirs(args.out, exist_ok=True)
+    with open(os.path.join(args.out, "benchmark.json"), "w") as fh:
+        json.dump(results, fh, indent=1)
+    md = markdown(results)
+    with open(os.path.join(args.out, "benchmark.md"), "w") as fh:
+        fh.write(md)
+    print(md)
+    return results
+
+
+if __name__ == "__main__":
+    main()
