@@ -237,30 +237,44 @@ def _merge(config, index: GridIndex, points: jax.Array, head: jax.Array) -> Grid
     wslots = (h0 + j) % n
     wpts = points[:, wslots]
     wkeys = jnp.where(active, cell_keys(geo, wpts), T)
-    # Old entries: drop unused positions and slots that are being re-merged.
-    count_old = index.starts[T]
-    pos = jnp.arange(n, dtype=jnp.int32)
-    keep = (pos < count_old) & (((index.order - h0) % n) >= m)
     new_counts = jnp.zeros((T + 1,), jnp.int32).at[wkeys].add(1)           # [T] = inactive
     new_before = _excl_cumsum(new_counts)                                    # (T + 1,)
-    keep_i = keep.astype(jnp.int32)
-    pos_old = _excl_cumsum(keep_i) + new_before[index.skeys]
-    pos_old = jnp.where(keep, pos_old, n)                                    # n: dropped
-    kept_counts = jnp.zeros((T + 1,), jnp.int32).at[index.skeys].add(keep_i)
+    pos = jnp.arange(n, dtype=jnp.int32)
+    if config.full_policy == "overwrite_oldest":
+        # Old entries: drop unused positions and slots that are being re-merged.
+        keep = (pos < index.starts[T]) & (((index.order - h0) % n) >= m)
+        keep_i = keep.astype(jnp.int32)
+        pos_old = jnp.where(keep, _excl_cumsum(keep_i) + new_before[index.skeys], n)
+        kept_counts = jnp.zeros((T + 1,), jnp.int32).at[index.skeys].add(keep_i)
+        sorted_old = False
+    else:
+        # No removals ("error" policy: the merged slots were empty). Every entry, used or not
+        # (unused ones have key T and stay at the end), moves up by the number of merged
+        # entries with a smaller key: strictly increasing positions, no cumsum over N.
+        pos_old = pos + new_before[index.skeys]
+        kept_counts = jnp.concatenate([jnp.diff(index.starts), jnp.zeros((1,), jnp.int32)])
+        sorted_old = True
     starts = _excl_cumsum(kept_counts + new_counts)
     # New entries go after the kept ones of their cell, in window order.
     skw, perm = jax.lax.sort((wkeys, j), num_keys=1, is_stable=True)
     first = jnp.searchsorted(skw, skw, side="left").astype(jnp.int32)
     pos_new = starts[skw] + kept_counts[skw] + (j - first)
-    pos_new = jnp.where(skw < T, pos_new, n)
-    order = jnp.zeros((n,), jnp.int32).at[pos_old].set(index.order, mode="drop")
-    order = order.at[pos_new].set(wslots[perm], mode="drop")
-    skeys = jnp.full((n,), T, jnp.int32).at[pos_old].set(index.skeys, mode="drop")
-    skeys = skeys.at[pos_new].set(skw, mode="drop")
-    spoints = jnp.zeros_like(index.spoints).at[:, pos_old].set(index.spoints, mode="drop")
-    spoints = spoints.at[:, pos_new].set(wpts[:, perm], mode="drop")
+    pos_new = jnp.where(skw < T, pos_new, n + j)                  # inactive: distinct, dropped
+    put_old = functools.partial(_put, sorted_=sorted_old)
+    order = put_old(jnp.zeros((n,), jnp.int32), pos_old, index.order)
+    order = _put(order, pos_new, wslots[perm], sorted_=True)
+    skeys = put_old(jnp.full((n,), T, jnp.int32), pos_old, index.skeys)
+    skeys = _put(skeys, pos_new, skw, sorted_=True)
+    spoints = put_old(jnp.zeros_like(index.spoints), pos_old, index.spoints)
+    spoints = _put(spoints, pos_new, wpts[:, perm], sorted_=True)
     return GridIndex(order=order, skeys=skeys, spoints=spoints, starts=starts,
                      n_new=(index.n_new - m).astype(jnp.int32))
+
+
+def _put(dst: jax.Array, pos: jax.Array, src: jax.Array, sorted_: bool) -> jax.Array:
+    """dst[..., pos] = src, out-of-range positions dropped (sorted_: pos strictly increasing)."""
+    return dst.at[..., pos].set(src, mode="drop", indices_are_sorted=sorted_,
+                                unique_indices=sorted_)
 
 
 def refresh(config, index: GridIndex, points: jax.Array, head: jax.Array) -> GridIndex:
