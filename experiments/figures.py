@@ -106,7 +106,7 @@ def _mc_demos(mode: str, label: str, continuous: bool, **hedger_extra: Any) -> V
         env="mountain_car_continuous" if continuous else "mountain_car_discrete",
         hedger=_items(base, capacity=45_000, **hedger_extra),
         run=RunConfig(n_blocks=10 if full else 4, episodes_per_block=20 if full else 50,
-                      eval_episodes=2500 if full else 300),
+                      eval_episodes=2500 if full else 200),
         phase1="simulated_person",
         x_axis="episodes",
     )
