@@ -364,9 +364,10 @@ def select(config, points: jax.Array, head: jax.Array, index: GridIndex, z: jax.
         neg, which = jax.lax.top_k(-jnp.concatenate([best_d2, jnp.where(ok, d2, jnp.inf)]), k)
         return p0 + width, -neg, jnp.concatenate([best_idx, slot])[which]
 
-    first = min(_FIRST_CHUNK, chunk)
-    carry = trip(jnp.zeros((), jnp.int32), jnp.full((k,), jnp.inf, jnp.float32),
-                 jnp.zeros((k,), jnp.int32), first)
+    carry = (jnp.zeros((), jnp.int32), jnp.full((k,), jnp.inf, jnp.float32),
+             jnp.zeros((k,), jnp.int32))
+    if _FIRST_CHUNK > 0:  # peeled first trip (one more copy of the trip in the program)
+        carry = trip(*carry, min(_FIRST_CHUNK, chunk))
     _, best_d2, best_idx = jax.lax.while_loop(lambda c: c[0] < total,
                                               lambda c: trip(*c, chunk), carry)
     return best_idx, best_d2, best_d2 <= r2
