@@ -279,6 +279,7 @@ def _phase1_fn(env, env_params, config: HedgerConfig, phase1, max_steps: int):
             del key
 
             def body(mem, ep):
+                mem = refresh_index(config, mem)
                 mem, _ = train_episode(config, mem, ep)
                 return mem, None
 
@@ -292,6 +293,7 @@ def _phase1_fn(env, env_params, config: HedgerConfig, phase1, max_steps: int):
     def learn_policy(memory, key):
         def body(carry, k):
             mem, points = carry
+            mem = refresh_index(config, mem)
             k_reset, k_init, k_run = jax.random.split(k, 3)
             if start is None:
                 obs0, s0 = env.reset(k_reset, env_params)

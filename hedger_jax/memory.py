@@ -146,12 +146,18 @@ def select_neighbours(config: HedgerConfig, memory: Memory, z: jax.Array) -> Nei
 
 
 def _pad_neighbours(config: HedgerConfig, idx, d2_sel, mask) -> Neighbours:
+    """Pad to ``max_neighbours`` and put K in a canonical order (real neighbours by slot, then
+    padding), so that every search method gives bit-identical fits (float32 sums depend on
+    the order of their terms)."""
     k = idx.shape[-1]
     if k < config.max_neighbours:  # tiny memory: pad to the static neighbour count
         pad = config.max_neighbours - k
         idx = jnp.concatenate([idx, jnp.zeros((pad,), idx.dtype)])
         d2_sel = jnp.concatenate([d2_sel, jnp.full((pad,), jnp.inf, d2_sel.dtype)])
         mask = jnp.concatenate([mask, jnp.zeros((pad,), bool)])
+    big = jnp.iinfo(jnp.int32).max
+    order = jnp.argsort(jnp.where(mask, idx.astype(jnp.int32), big))
+    idx, d2_sel, mask = idx[order], d2_sel[order], mask[order]
     return Neighbours(indices=idx.astype(jnp.int32), sqdist=jnp.where(mask, d2_sel, 0.0),
                       mask=mask)
 

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 
 from hedger_jax.config import HedgerConfig
 from hedger_jax.lwr import kernel_weights, local_fit
-from hedger_jax.memory import Memory, scale_inputs, select_neighbours
+from hedger_jax.memory import Memory, scale_inputs, select_neighbours, squared_distances
 
 
 class Prediction(NamedTuple):
@@ -36,7 +36,10 @@ def predict_scaled(config: HedgerConfig, memory: Memory, z: jax.Array) -> Predic
     zc = memory.points[:, nb.indices].T - z                  # (k, d), centred on the query
     zc = jnp.where(nb.mask[:, None], zc, 0.0)
     y = memory.values[nb.indices]
-    w = kernel_weights(nb.sqdist, config.bandwidth, nb.mask)
+    # Distances recomputed from the gathered points (one formula whatever the search method
+    # computed), so brute force and the grid index give bit-identical fits.
+    sqdist = squared_distances(zc.T, jnp.zeros((zc.shape[-1],), zc.dtype))
+    w = kernel_weights(sqdist, config.bandwidth, nb.mask)
     fit = local_fit(zc, y, w, nb.mask, ridge=config.ridge, ivh_tol=config.ivh_tol)
     count = jnp.sum(nb.mask).astype(jnp.int32)
     known = (count >= config.k_min) & jnp.isfinite(fit.value)
