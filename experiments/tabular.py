@@ -94,42 +94,12 @@ def evaluate_policy(policy: Callable[[jax.Array, jax.Array], jax.Array], key: ja
                     max_steps: int = 200) -> PolicyEvaluation:
     """The paper's evaluation: ``n_episodes`` starts from ``ENV.evaluation_starts``, each run
     with ``policy(obs float32 (2,), key) -> action value float32 ()`` (vmapped) until it reaches
-    the goal or ``max_steps``. Keys are split exactly as in ``hedger_jax.agent.evaluate``.
+    the goal or ``max_steps``: ``hedger_jax.agent.evaluate_policy``, the loop HEDGER's own
+    evaluation uses.
     """
-    params = _params(params)
-    k_starts, k_run = jax.random.split(key)
-    obs, states = ENV.evaluation_starts(k_starts, params, n_episodes)
-    keys = jax.random.split(k_run, n_episodes)
+    from hedger_jax.agent import evaluate_policy as run_policy
 
-    def one_step(obs, state, key):
-        k_a, k_s = jax.random.split(key)
-        action = policy(obs, k_a)
-        next_obs, state, _, terminated, truncated, _ = ENV.step(k_s, state, action, params)
-        return next_obs, state, terminated, truncated
-
-    def cond(c):
-        return (c[0] < max_steps) & ~jnp.all(c[1])
-
-    def body(c):
-        t, done, success, steps, obs, states, keys = c
-        split = jax.vmap(jax.random.split)(keys)
-        keys, k_step = split[:, 0], split[:, 1]
-        nobs, nstates, term, trunc = jax.vmap(one_step)(obs, states, k_step)
-        active = ~done
-        steps = steps + active.astype(jnp.int32)
-        success = success | (active & term)
-        done = done | (active & (term | trunc))
-        keep = lambda new, old: jnp.where(  # noqa: E731
-            active.reshape(active.shape + (1,) * (new.ndim - 1)), new, old)
-        obs = keep(nobs, obs)
-        states = jax.tree_util.tree_map(keep, nstates, states)
-        return t + 1, done, success, steps, obs, states, keys
-
-    n = n_episodes
-    init = (jnp.zeros((), jnp.int32), jnp.zeros((n,), bool), jnp.zeros((n,), bool),
-            jnp.zeros((n,), jnp.int32), obs, states, keys)
-    _, _, success, steps, _, _, _ = jax.lax.while_loop(cond, body, init)
-    steps = jnp.where(success, steps, max_steps).astype(jnp.float32)
+    steps, success = run_policy(ENV, _params(params), policy, key, n_episodes, max_steps)
     return PolicyEvaluation(jnp.mean(steps), jnp.mean(success.astype(jnp.float32)), steps)
 
 

@@ -210,21 +210,22 @@ def train_prefix(config: HedgerConfig, memory: Memory, episode: Transition, leng
     return jax.lax.fori_loop(0, length, body, memory)
 
 
-def evaluate(env: Any, env_params: Any, config: HedgerConfig, memory: Memory, key: jax.Array,
-             n_episodes: int, max_steps: int) -> Evaluation:
-    """Greedy policy, learning off, ``n_episodes`` from ``env.evaluation_starts`` (vmapped).
+def evaluate_policy(env: Any, env_params: Any, act, key: jax.Array, n_episodes: int,
+                    max_steps: int):
+    """Run ``act(obs (S,), key) -> action (A,)`` (vmapped, no learning) from ``n_episodes``
+    ``env.evaluation_starts`` until every episode ended or ``max_steps``.
 
-    The metric is the mean number of steps to the goal; an episode that does not reach it
-    within ``max_steps`` (or fails, e.g. hits a wall) counts as ``max_steps``.
+    Returns (steps float32 (n,), success bool (n,)): the steps to the goal of each episode,
+    ``max_steps`` for one that did not reach it (a timeout or a failure such as a wall).
+    Episodes that ended stop being stepped (masked), so short runs end early.
     """
-    memory = refresh_index(config, memory)
     k_starts, k_run = jax.random.split(key)
     obs, states = env.evaluation_starts(k_starts, env_params, n_episodes)
     keys = jax.random.split(k_run, n_episodes)
 
     def one_step(obs, state, key):
         k_a, k_s = jax.random.split(key)
-        action, _, _ = greedy_action(config, memory, obs, k_a)
+        action = jnp.reshape(act(obs, k_a), (env.action_space.action_dim,))
         next_obs, state, _, terminated, truncated, info = env.step(k_s, state, action, env_params)
         return next_obs, state, terminated, truncated, _success(info, terminated)
 
@@ -251,7 +252,22 @@ def evaluate(env: Any, env_params: Any, config: HedgerConfig, memory: Memory, ke
     init = (jnp.zeros((), jnp.int32), jnp.zeros((n,), bool), jnp.zeros((n,), bool),
             jnp.zeros((n,), jnp.int32), obs, states, keys)
     _, _, success, steps, _, _, _ = jax.lax.while_loop(cond, body, init)
-    steps = jnp.where(success, steps, max_steps).astype(jnp.float32)
+    return jnp.where(success, steps, max_steps).astype(jnp.float32), success
+
+
+def evaluate(env: Any, env_params: Any, config: HedgerConfig, memory: Memory, key: jax.Array,
+             n_episodes: int, max_steps: int) -> Evaluation:
+    """Greedy policy, learning off, ``n_episodes`` from ``env.evaluation_starts`` (vmapped).
+
+    The metric is the mean number of steps to the goal; an episode that does not reach it
+    within ``max_steps`` (or fails, e.g. hits a wall) counts as ``max_steps``.
+    """
+    memory = refresh_index(config, memory)
+
+    def act(obs, k):
+        return greedy_action(config, memory, obs, k)[0]
+
+    steps, success = evaluate_policy(env, env_params, act, key, n_episodes, max_steps)
     return Evaluation(jnp.mean(steps), jnp.mean(success.astype(jnp.float32)))
 
 
