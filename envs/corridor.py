@@ -95,7 +95,7 @@ hard lower bound for any policy 68 steps (``straight_line_lower_bound``). See
 """
 from __future__ import annotations
 
-from typing import Any, Callable, NamedTuple, Tuple
+from typing import NamedTuple, Tuple
 
 import jax
 import jax.numpy as jnp

@@ -42,7 +42,7 @@ damped controller such as ``(1.0, 0.5, 0.5)`` gives 69.4.
 """
 from __future__ import annotations
 
-from typing import Any, Callable, NamedTuple, Optional, Sequence
+from typing import Callable, NamedTuple, Optional, Sequence
 
 import jax
 import jax.numpy as jnp

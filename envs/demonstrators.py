@@ -19,13 +19,13 @@
 from __future__ import annotations
 
 import functools
-from typing import Any, Callable, NamedTuple, Optional, Tuple
+from typing import Any, Callable, NamedTuple, Tuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from envs.demonstrations import Demonstrations, concatenate
+from envs.demonstrations import Demonstrations
 
 __all__ = ["Policy", "record_episodes", "PersonParams", "PERSONS", "simulated_person_policy",
            "simulated_person_demonstrations", "energy_pumping_policy", "random_policy"]

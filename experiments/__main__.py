@@ -9,16 +9,16 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import io
 import json
 import os
 import sys
 import time
-from typing import Dict, List
+from typing import Dict, List, Optional
 
-import numpy as np
 
-from experiments.figures import FIGURES, PAPER, build_figure
+from experiments.figures import FIGURES, build_figure
 from experiments.plotting import plot_figure
 from experiments.runner import atomic_write_bytes, atomic_write_json, run_variant, versions
 from experiments.summary import figure_summary, reference_values
@@ -37,8 +37,14 @@ def _csv(records: List[Dict]) -> bytes:
 
 
 def run_figure(name: str, mode: str, seeds: List[int], out: str, seed_batch: int,
-               base_seed: int) -> Dict:
+               base_seed: int, only: Optional[List[str]] = None) -> Dict:
     figure = build_figure(name, mode)
+    if only:
+        kept = tuple(v for v in figure.variants if any(o in v.label for o in only))
+        if not kept:
+            raise SystemExit(f"--variant {only} matches none of "
+                             f"{[v.label for v in figure.variants]}")
+        figure = dataclasses.replace(figure, variants=kept)
     print(f"{figure.title} [{mode}, {len(seeds)} seeds]")
     t0 = time.time()
     records = [run_variant(v, seeds, out, base_seed=base_seed, seed_batch=seed_batch)
@@ -68,6 +74,8 @@ def main(argv=None) -> int:
                         help="seeds vmapped together in one computation (default 8)")
     parser.add_argument("--base-seed", type=int, default=0)
     parser.add_argument("--out", default="results", help="output directory (default results/)")
+    parser.add_argument("--variant", action="append", default=None, metavar="TEXT",
+                        help="run only the variants whose label contains TEXT (repeatable)")
     args = parser.parse_args(argv)
     mode_name = args.mode or "quick"
     if args.seeds < 1:
@@ -85,7 +93,8 @@ def main(argv=None) -> int:
             with open(path) as f:
                 summaries[existing] = figure_summary(json.load(f))
     for name in names:
-        data = run_figure(name, mode_name, seeds, args.out, args.seed_batch, args.base_seed)
+        data = run_figure(name, mode_name, seeds, args.out, args.seed_batch, args.base_seed,
+                          args.variant)
         summaries[name] = figure_summary(data)
     text = "# hedger-jax: reproduction summary\n\n" + "\n".join(
         summaries[n] for n in FIGURES if n in summaries)

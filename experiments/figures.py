@@ -134,23 +134,23 @@ def build_figure(name: str, mode: str = "quick") -> Figure:
                        ("tabular Q-learning", "tabular_q_paper_reward"),
                        ("optimal (grid DP)", "optimal_dp")))
     if name == "fig3":
-        make = _mc_random_starts if full else _mc_demos
+        make = _mc_random_starts
         return Figure("fig3", "Figure 3: HEDGER without the IVH check (mountain car)",
                       (make(mode, "discrete", False),
                        make(mode, "discrete, IVH off", False, use_ivh=False),
                        make(mode, "continuous", True),
                        make(mode, "continuous, IVH off", True, use_ivh=False)),
-                      "training points" if full else "phase-two training runs",
+                      "training points",
                       (("random policy", "random"),
                        ("tabular Q-learning", "tabular_q_paper_reward")))
     if name == "fig4":
-        make = _mc_random_starts if full else _mc_demos
+        make = _mc_random_starts
         return Figure("fig4", "Figure 4: HEDGER without region updating (mountain car)",
                       (make(mode, "discrete", False),
                        make(mode, "discrete, no region update", False, region_update=False),
                        make(mode, "continuous", True),
                        make(mode, "continuous, no region update", True, region_update=False)),
-                      "training points" if full else "phase-two training runs",
+                      "training points",
                       (("tabular Q-learning", "tabular_q_paper_reward"),))
     if name == "fig5":
         variant = Variant(

@@ -11,8 +11,6 @@ compilation per value), seeds are vmapped.
 from __future__ import annotations
 
 import argparse
-import dataclasses
-import json
 import os
 import time
 from typing import Any, Dict, List
