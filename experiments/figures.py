@@ -112,6 +112,18 @@ def _mc_demos(mode: str, label: str, continuous: bool, **hedger_extra: Any) -> V
     )
 
 
+def _ablation(name: str, title: str, mode: str, off_label: str, off: Dict[str, Any],
+              reference: Tuple[Tuple[str, str], ...]) -> Figure:
+    """An ablation figure in the paper's "basic HEDGER" (random-start) setting: discrete and
+    continuous, each with the feature on and off (the discrete pair first)."""
+    return Figure(name, title,
+                  (_mc_random_starts(mode, "discrete", False),
+                   _mc_random_starts(mode, f"discrete, {off_label}", False, **off),
+                   _mc_random_starts(mode, "continuous", True),
+                   _mc_random_starts(mode, f"continuous, {off_label}", True, **off)),
+                  "training points", reference)
+
+
 def build_figure(name: str, mode: str = "quick") -> Figure:
     """The figure ``name`` ("fig1" ... "fig5") in ``mode`` ("quick" or "full")."""
     if mode not in MODES:
@@ -134,24 +146,14 @@ def build_figure(name: str, mode: str = "quick") -> Figure:
                        ("tabular Q-learning", "tabular_q_paper_reward"),
                        ("optimal (grid DP)", "optimal_dp")))
     if name == "fig3":
-        make = _mc_random_starts
-        return Figure("fig3", "Figure 3: HEDGER without the IVH check (mountain car)",
-                      (make(mode, "discrete", False),
-                       make(mode, "discrete, IVH off", False, use_ivh=False),
-                       make(mode, "continuous", True),
-                       make(mode, "continuous, IVH off", True, use_ivh=False)),
-                      "training points",
-                      (("random policy", "random"),
-                       ("tabular Q-learning", "tabular_q_paper_reward")))
+        return _ablation("fig3", "Figure 3: HEDGER without the IVH check (mountain car)", mode,
+                         "IVH off", dict(use_ivh=False),
+                         (("random policy", "random"),
+                          ("tabular Q-learning", "tabular_q_paper_reward")))
     if name == "fig4":
-        make = _mc_random_starts
-        return Figure("fig4", "Figure 4: HEDGER without region updating (mountain car)",
-                      (make(mode, "discrete", False),
-                       make(mode, "discrete, no region update", False, region_update=False),
-                       make(mode, "continuous", True),
-                       make(mode, "continuous, no region update", True, region_update=False)),
-                      "training points",
-                      (("tabular Q-learning", "tabular_q_paper_reward"),))
+        return _ablation("fig4", "Figure 4: HEDGER without region updating (mountain car)",
+                         mode, "no region update", dict(region_update=False),
+                         (("tabular Q-learning", "tabular_q_paper_reward"),))
     if name == "fig5":
         variant = Variant(
             label="HEDGER (corridor)",
