@@ -8,8 +8,15 @@ Core API::
     action, value, known = greedy_action(config, memory, state, key)
     memory, info = train_episode(config, memory, episode)           # Algorithm 2, reversed
 
-Importing this package is light: it never imports brax.
+Importing this package is light: it never imports brax. It appends
+``--xla_cpu_enable_concurrency_optimized_scheduler=false`` to ``XLA_FLAGS`` (an XLA CPU
+deadlock seen in large vmapped programs; see ``hedger_jax.runtime`` for why and how to opt
+out).
 """
+from hedger_jax.runtime import apply_safe_cpu_flags as _apply_safe_cpu_flags
+
+_apply_safe_cpu_flags()
+
 from hedger_jax.config import HedgerConfig
 from hedger_jax.greedy import greedy_action, greedy_value, maximise_1d
 from hedger_jax.memory import (FLAG_FULL, FLAG_NONFINITE, Memory, MemoryFullError,
