@@ -36,15 +36,27 @@ def _csv(records: List[Dict]) -> bytes:
     return out.getvalue().encode()
 
 
-def run_figure(name: str, mode: str, seeds: List[int], out: str, seed_batch: int,
-               base_seed: int, only: Optional[List[str]] = None) -> Dict:
-    figure = build_figure(name, mode)
+def select_variants(figure, only: Optional[List[str]] = None,
+                    eval_episodes: Optional[int] = None):
+    """The figure with only the variants whose label contains one of ``only`` (searched
+    among its default and optional variants; default: the default variants), each with
+    ``eval_episodes`` evaluation episodes when given."""
+    variants = figure.variants
     if only:
-        kept = tuple(v for v in figure.variants if any(o in v.label for o in only))
-        if not kept:
-            raise SystemExit(f"--variant {only} matches none of "
-                             f"{[v.label for v in figure.variants]}")
-        figure = dataclasses.replace(figure, variants=kept)
+        pool = figure.variants + figure.optional
+        variants = tuple(v for v in pool if any(o in v.label for o in only))
+        if not variants:
+            raise SystemExit(f"--variant {only} matches none of {[v.label for v in pool]}")
+    if eval_episodes is not None:
+        variants = tuple(dataclasses.replace(
+            v, run=dataclasses.replace(v.run, eval_episodes=eval_episodes)) for v in variants)
+    return dataclasses.replace(figure, variants=variants, optional=())
+
+
+def run_figure(name: str, mode: str, seeds: List[int], out: str, seed_batch: int,
+               base_seed: int, only: Optional[List[str]] = None,
+               eval_episodes: Optional[int] = None) -> Dict:
+    figure = select_variants(build_figure(name, mode), only, eval_episodes)
     print(f"{figure.title} [{mode}, {len(seeds)} seeds]")
     t0 = time.time()
     records = [run_variant(v, seeds, out, base_seed=base_seed, seed_batch=seed_batch)
@@ -75,13 +87,19 @@ def main(argv=None) -> int:
     parser.add_argument("--base-seed", type=int, default=0)
     parser.add_argument("--out", default="results", help="output directory (default results/)")
     parser.add_argument("--variant", action="append", default=None, metavar="TEXT",
-                        help="run only the variants whose label contains TEXT (repeatable)")
+                        help="run only the variants whose label contains TEXT (repeatable); "
+                             "also selects optional variants (fig2 --quick: 'continuous')")
+    parser.add_argument("--eval-episodes", type=int, default=None, metavar="N",
+                        help="evaluation episodes per evaluation point (default: the mode's, "
+                             "2500 with --full)")
     args = parser.parse_args(argv)
     mode_name = args.mode or "quick"
     if args.seeds < 1:
         parser.error("--seeds must be >= 1")
     if args.seed_batch < 1:
         parser.error("--seed-batch must be >= 1")
+    if args.eval_episodes is not None and args.eval_episodes < 1:
+        parser.error("--eval-episodes must be >= 1")
     os.makedirs(args.out, exist_ok=True)
     names = list(FIGURES) if args.figure == "all" else [args.figure]
     seeds = list(range(args.seeds))
@@ -94,7 +112,7 @@ def main(argv=None) -> int:
                 summaries[existing] = figure_summary(json.load(f))
     for name in names:
         data = run_figure(name, mode_name, seeds, args.out, args.seed_batch, args.base_seed,
-                          args.variant)
+                          args.variant, args.eval_episodes)
         summaries[name] = figure_summary(data)
     text = "# hedger-jax: reproduction summary\n\n" + "\n".join(
         summaries[n] for n in FIGURES if n in summaries)

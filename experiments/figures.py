@@ -78,6 +78,8 @@ class Figure:
     variants: Tuple[Variant, ...]
     x_label: str
     reference: Tuple[Tuple[str, str], ...] = ()  # (label, key into reference values)
+    #: Variants run only when named with ``--variant`` (too slow for the mode's default).
+    optional: Tuple[Variant, ...] = ()
 
 
 def _items(d: Dict[str, Any], **extra: Any) -> Tuple[Tuple[str, Any], ...]:
@@ -138,13 +140,15 @@ def build_figure(name: str, mode: str = "quick") -> Figure:
                        ("random policy", "random")))
     if name == "fig2":
         variants = [_mc_demos(mode, "discrete", False)]
+        continuous = (_mc_demos(mode, "continuous", True),)
         if full:
-            variants.append(_mc_demos(mode, "continuous", True))
+            variants.extend(continuous)
         return Figure("fig2", "Figure 2: HEDGER with 11 demonstrations (mountain car)",
                       tuple(variants), "phase-two training runs",
                       (("demonstrators' mean", "demonstrators_mean"),
                        ("tabular Q-learning", "tabular_q_paper_reward"),
-                       ("optimal (grid DP)", "optimal_dp")))
+                       ("optimal (grid DP)", "optimal_dp")),
+                      optional=() if full else continuous)
     if name == "fig3":
         return _ablation("fig3", "Figure 3: HEDGER without the IVH check (mountain car)", mode,
                          "IVH off", dict(use_ivh=False),

@@ -131,11 +131,12 @@ def figure_summary(data: Dict) -> str:
                    "fig5": "after phase 1 < hand-coded (106); after 30 runs ≈ best (70)"}
     out = [f"## {data['title']} ({data['mode']})", "",
            f"Paper: {paper_final.get(data['figure'], '')}.", "",
-           "| variant | seeds | after phase 1 / first eval | final | points at end |",
-           "|---|---|---|---|---|"]
+           "| variant | seeds | eval episodes | after phase 1 / first eval | final | points at end |",
+           "|---|---|---|---|---|---|"]
     for rec in data["variants"]:
-        out.append(f"| {rec['label']} | {len(rec['seeds'])} | {_fmt(*mean_ci(_first(rec)))} | "
-                   f"{_fmt(*mean_ci(_final(rec)))} | "
+        n_eval = rec.get("run_config", {}).get("eval_episodes", "")
+        out.append(f"| {rec['label']} | {len(rec['seeds'])} | {n_eval} | "
+                   f"{_fmt(*mean_ci(_first(rec)))} | {_fmt(*mean_ci(_final(rec)))} | "
                    f"{int(np.mean(np.asarray(rec['points'])[:, -1]))} |")
     refs = data.get("reference", {})
     if refs:

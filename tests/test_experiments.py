@@ -143,3 +143,25 @@ def test_cli_rejects_bad_arguments(capsys):
         main(["fig7"])
     with pytest.raises(SystemExit):
         main(["fig1", "--seeds", "0"])
+
+
+def test_select_variants_optional_and_eval_episodes():
+    from experiments.__main__ import select_variants
+
+    fig = build_figure("fig2", "quick")
+    assert [v.label for v in fig.variants] == ["discrete"]
+    assert [v.label for v in fig.optional] == ["continuous"]
+    # Default: the default variants only, unchanged.
+    same = select_variants(fig)
+    assert same.variants == fig.variants and same.optional == ()
+    # --variant reaches the optional (slow) variant; --eval-episodes overrides the protocol.
+    cont = select_variants(fig, ["continuous"], eval_episodes=7)
+    assert [v.label for v in cont.variants] == ["continuous"]
+    assert cont.variants[0].env == "mountain_car_continuous"
+    assert cont.variants[0].run.eval_episodes == 7
+    assert cont.variants[0].run.n_blocks == fig.optional[0].run.n_blocks
+    with pytest.raises(SystemExit, match="matches none"):
+        select_variants(fig, ["no such variant"])
+    # --full runs the continuous variant by default.
+    full = build_figure("fig2", "full")
+    assert [v.label for v in full.variants] == ["discrete", "continuous"] and full.optional == ()
