@@ -50,7 +50,11 @@ def select_variants(figure, only: Optional[List[str]] = None,
     if eval_episodes is not None:
         variants = tuple(dataclasses.replace(
             v, run=dataclasses.replace(v.run, eval_episodes=eval_episodes)) for v in variants)
-    return dataclasses.replace(figure, variants=variants, optional=())
+    x_label = figure.x_label
+    axes = {v.x_axis for v in variants}
+    if axes == {"episodes"} and x_label == "training points":
+        x_label = "phase-two training runs"      # e.g. an ablation in the Figure-2 setting
+    return dataclasses.replace(figure, variants=variants, optional=(), x_label=x_label)
 
 
 def run_figure(name: str, mode: str, seeds: List[int], out: str, seed_batch: int,

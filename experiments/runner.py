@@ -54,9 +54,14 @@ def atomic_write_json(path: str, obj: Any) -> None:
 
 
 def variant_key(variant: Variant, seeds: List[int], base_seed: int) -> str:
-    """A stable hash of everything that determines a variant's results for these seeds."""
+    """A stable hash of everything that determines a variant's results for these seeds.
+
+    The label is left out (it names a line in a plot, it does not change the run), so the
+    same run shared by two figures under different labels is computed once.
+    """
     blob = json.dumps({
-        "variant": repr(variant), "seeds": seeds, "base_seed": base_seed,
+        "variant": repr(dataclasses.replace(variant, label="")), "seeds": seeds,
+        "base_seed": base_seed,
         "version": hedger_jax.__version__,
     }, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]

@@ -165,3 +165,21 @@ def test_select_variants_optional_and_eval_episodes():
     # --full runs the continuous variant by default.
     full = build_figure("fig2", "full")
     assert [v.label for v in full.variants] == ["discrete", "continuous"] and full.optional == ()
+
+
+def test_ablation_demo_variants_share_figure2_cache_key():
+    from experiments.__main__ import select_variants
+
+    fig4 = select_variants(build_figure("fig4", "quick"), ["continuous + demos"])
+    assert [v.label for v in fig4.variants] == ["continuous + demos",
+                                                "continuous + demos, no region update"]
+    assert fig4.x_label == "phase-two training runs"
+    assert dict(fig4.variants[1].hedger)["region_update"] is False
+    fig2 = select_variants(build_figure("fig2", "quick"), ["continuous"])
+    # Same run, different label: one cache entry.
+    assert runner.variant_key(fig4.variants[0], [0, 1], 0) == \
+        runner.variant_key(fig2.variants[0], [0, 1], 0)
+    assert runner.variant_key(fig4.variants[0], [0, 1], 0) != \
+        runner.variant_key(fig4.variants[1], [0, 1], 0)
+    fig3 = select_variants(build_figure("fig3", "quick"), ["discrete + demos"])
+    assert dict(fig3.variants[1].hedger)["use_ivh"] is False
