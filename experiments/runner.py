@@ -163,7 +163,8 @@ def run_variant(variant: Variant, seeds: List[int], out_dir: str, *, base_seed: 
         if record.get("complete"):
             if progress:
                 print(f"  {variant.label}: cached result {result_path}")
-            return record
+            # The cache is shared between figures that name the same run differently.
+            return dict(record, label=variant.label)
 
     init, run_block, info = compiled_variant(variant)
     n_blocks = variant.run.n_blocks

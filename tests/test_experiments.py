@@ -100,6 +100,14 @@ def test_run_variant_resumes_after_interruption(tmp_path):
     runner.run_variant(TINY, [0, 1, 2], out, seed_batch=2, progress=False,
                        on_block=again.append)
     assert again == []
+    # The same run under another label (another figure's name for it) is shared, and is
+    # reported under the label it was asked for.
+    import dataclasses
+    renamed = runner.run_variant(dataclasses.replace(TINY, label="tiny, as in fig. 9"),
+                                 [0, 1, 2], out, seed_batch=2, progress=False,
+                                 on_block=again.append)
+    assert again == [] and renamed["label"] == "tiny, as in fig. 9"
+    assert renamed["mean_steps"] == rec["mean_steps"]
     # No checkpoints remain once batches are finished.
     assert not [p for p in os.listdir(os.path.join(out, "cache")) if p.startswith("ckpt-")]
 
