@@ -436,6 +436,23 @@ class Corridor:
         high = jnp.stack([F32(np.pi / 4), params.width / 2, params.length + 0.0]).astype(F32)
         return low, high
 
+    def obs_space_bounds(self, params: CorridorParams):
+        """Hard bounds that contain every observation the env can emit: float32 (3,) each.
+
+        Laser: the corridor-axis angle is half an ``arctan2`` (within [-pi/2, pi/2]), the
+        offset is clipped to [-width, width] and the distance to [0, max_range]. Geometric:
+        the wrapped heading within [-pi, pi], the offset within the walls, and the distance
+        to the end unbounded (the robot may drive backwards past the start line).
+        """
+        if params.observation == "geometric":
+            half = params.width / 2
+            low = np.array([-np.pi, -half, -np.inf], np.float32)
+            high = np.array([np.pi, half, np.inf], np.float32)
+        else:
+            low = np.array([-np.pi / 2, -params.width, 0.0], np.float32)
+            high = np.array([np.pi / 2, params.width, params.max_range], np.float32)
+        return low, high
+
     # --- rendering ----------------------------------------------------------------------
     def render_rgb(self, state: CorridorState, params: CorridorParams,
                    scale: float = 40.0, beams: bool = True) -> np.ndarray:

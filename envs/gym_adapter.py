@@ -27,7 +27,8 @@ Spaces:
     ``"unbounded"`` (±inf) to override. ``HedgerCorridor-v0`` is registered with
     ``"hard_or_unbounded"``: its laser-derived observation can leave the nominal scaling range
     (angle beyond ±pi/4, offset beyond ±width/2, and with the geometric observation the distance
-    beyond ``length``), so it uses the env's hard bounds if it declares them, else ±inf.
+    beyond ``length``), so it uses the env's hard bounds (``Corridor.obs_space_bounds``: finite
+    for the laser observation, the distance unbounded for the geometric one), else ±inf.
 
 Time limit: by default the functional env's own ``truncated`` flag is used (it truncates at
 ``env.max_steps``). ``time_limit=N`` replaces it by the adapter's own step counter

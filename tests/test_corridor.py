@@ -62,6 +62,36 @@ def test_laser_matches_geometric():
     np.testing.assert_allclose(np.asarray(las0), np.asarray(geo), atol=1e-4)
 
 
+def test_obs_space_bounds_contain_every_observation():
+    """Hard observation bounds (the Gymnasium observation_space) hold for poses anywhere:
+    any heading, against either wall, behind the start and past the goal."""
+    rng = np.random.default_rng(0)
+    n = 2000
+    ylim = float(P.width) / 2 - float(P.robot_radius)
+    poses = np.stack([rng.uniform(-3.0, float(P.length) + 0.5, n),
+                      rng.uniform(-ylim, ylim, n),
+                      rng.uniform(-np.pi, np.pi, n)], axis=1).astype(np.float32)
+    poses[:50, 1] = ylim          # touching the left wall
+    poses[50:100, 1] = -ylim      # touching the right wall
+    poses[100:150, 2] = np.pi     # facing backwards
+    states = _states(poses)
+    keys = jax.random.split(jax.random.PRNGKey(3), n)
+    las = np.asarray(jax.jit(jax.vmap(lambda k, s: laser_obs(k, s, P)))(keys, states))
+    geo = np.asarray(jax.vmap(lambda s: geometric_obs(s, PG))(states))
+    for obs, params in ((las, P), (geo, PG)):
+        low, high = ENV.obs_space_bounds(params)
+        assert low.dtype == high.dtype == np.float32 and low.shape == high.shape == (3,)
+        assert np.all(np.isfinite(obs))
+        assert np.all(obs >= low) and np.all(obs <= high), (obs.min(0), obs.max(0), low, high)
+    # the laser bounds are finite (a bounded Box), and the nominal scaling range lies inside
+    low, high = ENV.obs_space_bounds(P)
+    assert np.all(np.isfinite(low)) and np.all(np.isfinite(high))
+    s_low, s_high = map(np.asarray, ENV.obs_bounds(P))
+    assert np.all(low <= s_low) and np.all(s_high <= high)
+    # laser observations do leave the nominal range somewhere (why hard bounds are needed)
+    assert np.any((las < s_low) | (las > s_high))
+
+
 def test_wall_never_crossed_random_actions():
     n = 256
     half = float(P.width) / 2
