@@ -26,6 +26,10 @@ import jax
 import jax.numpy as jnp
 from jax.scipy.linalg import solve_triangular
 
+#: Largest number of regression parameters p = d + 1 factorised by the unrolled code below;
+#: larger systems use LAPACK (``jnp.linalg.cholesky`` / ``solve_triangular``).
+_UNROLL_MAX_P = 8
+
 
 class LocalFit(NamedTuple):
     """value: float32 () fitted value at the query (the intercept).
@@ -47,6 +51,67 @@ def design_matrix(zc: jax.Array, mask: jax.Array) -> jax.Array:
     return jnp.concatenate([ones, zc], axis=-1) * mask[..., None].astype(zc.dtype)
 
 
+def _cholesky(a: jax.Array) -> jax.Array:
+    """Lower Cholesky factor of a symmetric positive-definite a (p, p).
+
+    For p <= ``_UNROLL_MAX_P`` the Cholesky-Banachiewicz recurrence is unrolled into scalar
+    jnp ops (p (p + 1) / 2 entries): on CPU a LAPACK call per tiny matrix costs more than the
+    arithmetic, and the unrolled ops fuse (and vectorise under vmap). Same algorithm as LAPACK's
+    unblocked potrf, float32 throughout.
+    """
+    p = a.shape[-1]
+    if p > _UNROLL_MAX_P:
+        return jnp.linalg.cholesky(a)
+    L = [[None] * p for _ in range(p)]
+    for j in range(p):
+        acc = a[j, j]
+        for m in range(j):
+            acc = acc - L[j][m] * L[j][m]
+        L[j][j] = jnp.sqrt(acc)
+        inv = 1.0 / L[j][j]
+        for i in range(j + 1, p):
+            acc = a[i, j]
+            for m in range(j):
+                acc = acc - L[i][m] * L[j][m]
+            L[i][j] = acc * inv
+    zero = jnp.zeros((), a.dtype)
+    return jnp.stack([jnp.stack([L[i][j] if j <= i else zero for j in range(p)])
+                      for i in range(p)])
+
+
+def _solve_lower(L: jax.Array, b: jax.Array) -> jax.Array:
+    """Forward substitution: x with L x = b, L (p, p) lower, b (p,) or (p, k)."""
+    p = L.shape[-1]
+    if p > _UNROLL_MAX_P:
+        return solve_triangular(L, b, lower=True)
+    x = []
+    for i in range(p):
+        acc = b[i]
+        for m in range(i):
+            acc = acc - L[i, m] * x[m]
+        x.append(acc / L[i, i])
+    return jnp.stack(x)
+
+
+def _solve_upper_transposed(L: jax.Array, b: jax.Array) -> jax.Array:
+    """Back substitution with L': x with L' x = b, L (p, p) lower, b (p,)."""
+    p = L.shape[-1]
+    if p > _UNROLL_MAX_P:
+        return solve_triangular(L.T, b, lower=False)
+    x = [None] * p
+    for i in range(p - 1, -1, -1):
+        acc = b[i]
+        for m in range(i + 1, p):
+            acc = acc - L[m, i] * x[m]
+        x[i] = acc / L[i, i]
+    return jnp.stack(x)
+
+
+def _gram(A: jax.Array, B: jax.Array) -> jax.Array:
+    """A' B for A, B (k, p) as a broadcast product and sum (fuses; no tiny-matmul call)."""
+    return jnp.sum(A[:, :, None] * B[:, None, :], axis=0)
+
+
 def _equilibrated_cholesky(gram: jax.Array, ridge: float):
     """gram (p, p) PSD -> (L, s) with L L' = D^-1 gram D^-1 + ridge I, D = diag(s)."""
     diag = jnp.diagonal(gram)
@@ -54,7 +119,7 @@ def _equilibrated_cholesky(gram: jax.Array, ridge: float):
     scaled = gram / (s[:, None] * s[None, :])
     p = gram.shape[-1]
     scaled = scaled + jnp.float32(ridge) * jnp.eye(p, dtype=gram.dtype)
-    return jnp.linalg.cholesky(scaled), s
+    return _cholesky(scaled), s
 
 
 def hull_contains(X: jax.Array, mask: jax.Array, ridge: float, tol: float) -> jax.Array:
@@ -62,21 +127,21 @@ def hull_contains(X: jax.Array, mask: jax.Array, ridge: float, tol: float) -> ja
 
     Inside iff e_0'(X'X)^-1 e_0 <= (1 + tol) * max_i x_i'(X'X)^-1 x_i over masked rows.
     """
-    L, s = _equilibrated_cholesky(X.T @ X, ridge)
-    Y = solve_triangular(L, (X / s).T, lower=True)             # (p, k)
+    L, s = _equilibrated_cholesky(_gram(X, X), ridge)
+    Y = _solve_lower(L, (X / s).T)                             # (p, k)
     leverage = jnp.where(mask, jnp.sum(Y * Y, axis=0), -jnp.inf)  # v_ii
     e0 = jnp.zeros((X.shape[-1],), X.dtype).at[0].set(1.0) / s
-    yq = solve_triangular(L, e0, lower=True)
+    yq = _solve_lower(L, e0)
     return jnp.sum(yq * yq) <= (1.0 + tol) * jnp.max(leverage)
 
 
 def weighted_intercept(X: jax.Array, y: jax.Array, w: jax.Array, ridge: float) -> jax.Array:
     """Intercept of the weighted least-squares fit of y (k,) on X (k, p), weights w (k,)."""
     Xw = X * w[:, None]
-    L, s = _equilibrated_cholesky(Xw.T @ X, ridge)
-    rhs = (Xw.T @ y) / s
-    u = solve_triangular(L, rhs, lower=True)
-    beta_scaled = solve_triangular(L.T, u, lower=False)
+    L, s = _equilibrated_cholesky(_gram(Xw, X), ridge)
+    rhs = jnp.sum(Xw * y[:, None], axis=0) / s
+    u = _solve_lower(L, rhs)
+    beta_scaled = _solve_upper_transposed(L, u)
     return beta_scaled[0] / s[0]
 
 

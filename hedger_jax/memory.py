@@ -156,8 +156,15 @@ def _pad_neighbours(config: HedgerConfig, idx, d2_sel, mask) -> Neighbours:
         d2_sel = jnp.concatenate([d2_sel, jnp.full((pad,), jnp.inf, d2_sel.dtype)])
         mask = jnp.concatenate([mask, jnp.zeros((pad,), bool)])
     big = jnp.iinfo(jnp.int32).max
-    order = jnp.argsort(jnp.where(mask, idx.astype(jnp.int32), big))
-    idx, d2_sel, mask = idx[order], d2_sel[order], mask[order]
+    key = jnp.where(mask, idx.astype(jnp.int32), big)
+    # Stable rank of every key (a k x k comparison count: fuses and vectorises, unlike a
+    # sort call per query on CPU); the ranks are a permutation, applied by one scatter.
+    j = jnp.arange(key.shape[-1])
+    before = (key[None, :] < key[:, None]) | ((key[None, :] == key[:, None])
+                                              & (j[None, :] < j[:, None]))
+    rank = jnp.sum(before, axis=1)
+    idx, d2_sel, mask = (jnp.zeros_like(a).at[rank].set(a, unique_indices=True)
+                         for a in (idx, d2_sel, mask))
     return Neighbours(indices=idx.astype(jnp.int32), sqdist=jnp.where(mask, d2_sel, 0.0),
                       mask=mask)
 

@@ -185,3 +185,28 @@ def test_prediction_arrays_have_max_neighbours_entries_even_when_capacity_is_sma
     mask = np.asarray(p.mask)
     assert set(np.asarray(p.indices)[mask].tolist()) == {0, 1, 2, 3, 4}
     assert p.indices.shape == p.weights.shape == p.mask.shape == (10,)
+
+
+@pytest.mark.parametrize("kind", ["brute", "grid"])
+def test_neighbours_come_in_canonical_order_by_slot(kind):
+    """K is reported as the real neighbours by ascending slot, then the padding, with each
+    slot's own squared distance (a float64 NumPy brute force gives the set)."""
+    cfg = HedgerConfig(2, 1, capacity=64, bandwidth=0.1, max_neighbours=8,
+                       neighbour_index=kind)
+    rng = np.random.default_rng(3)
+    s, a, v = _data(60, seed=3)
+    m = add_points(cfg, init_memory(cfg), s, a, v)
+    from hedger_jax.memory import refresh_index, select_neighbours
+    m = refresh_index(cfg, m)
+    pts = np.asarray(m.points, np.float64)[:, :60]
+    for q in rng.uniform([0, 0, -1], [1, 1, 1], (20, 3)).astype(np.float32):
+        nb = select_neighbours(cfg, m, jnp.asarray(q))
+        mask, idx, d2 = (np.asarray(x) for x in (nb.mask, nb.indices, nb.sqdist))
+        n = int(mask.sum())
+        assert mask[:n].all() and not mask[n:].any()        # real neighbours first
+        assert np.all(np.diff(idx[:n]) > 0)                 # by ascending slot
+        ref = np.sum((pts - q.astype(np.float64)[:, None]) ** 2, axis=0)
+        within = np.flatnonzero(ref <= cfg.k_thresh ** 2)
+        expect = within[np.argsort(ref[within], kind="stable")][:8]
+        assert set(idx[:n].tolist()) == set(expect.tolist())
+        np.testing.assert_allclose(d2[:n], ref[idx[:n]], rtol=1e-5, atol=1e-7)
