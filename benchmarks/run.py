@@ -45,6 +45,7 @@ from hedger_jax.agent import RunConfig, explore_action, make_train, rollout, tra
 from hedger_jax.config import HedgerConfig  # noqa: E402
 from hedger_jax.memory import init_memory, refresh_index, select_neighbours  # noqa: E402
 from hedger_jax.predict import predict_scaled  # noqa: E402
+from hedger_jax.runtime import jit_serial_codegen, serial_codegen_wanted  # noqa: E402
 from numpy_baseline import NumpyHedger, time_episodes  # noqa: E402
 
 DISCRETE = ((-1.0,), (0.0,), (1.0,))
@@ -212,11 +213,15 @@ def episodes_fn(cfg, continuous, n_episodes):
     return run_eps
 
 
-def time_training(cfg, continuous, mem, n_episodes, n_seeds=None):
+def time_training(cfg, continuous, mem, n_episodes, n_seeds=None, serial=None):
+    """(points per CPU-second, first-call seconds, points per wall-second). ``serial``:
+    compile inside ``hedger_jax.runtime.serial_codegen`` (None: the library's auto policy)."""
     fn = episodes_fn(cfg, continuous, n_episodes)
     if n_seeds is not None:
         fn = jax.vmap(fn)
-    f = jax.jit(fn, donate_argnums=(0,))
+    if serial is None:
+        serial = serial_codegen_wanted(4 * cfg.dim * cfg.capacity)
+    f = jit_serial_codegen(fn, enabled=serial, donate_argnums=(0,))
     key = jax.random.PRNGKey(0)
     keys = key if n_seeds is None else jax.random.split(key, n_seeds)
     t0 = time.perf_counter()
@@ -237,11 +242,12 @@ def bench_train(settings, rng, results, quick):
         row = {"actions": "continuous" if continuous else "discrete", "capacity": cap,
                "prefill": prefill}
         n_eps = 2 if quick else 4
-        for kind in ("brute", "grid"):
+        for kind, serial in (("brute", False), ("grid", False), ("grid_serial", True)):
             if kind == "brute" and cap > 100_000:
                 continue
-            cfg = mc_config(cap, kind, continuous)
-            pps, t_first, wall = time_training(cfg, continuous, filled_memory(cfg, z, v), n_eps)
+            cfg = mc_config(cap, kind.split("_")[0], continuous)
+            pps, t_first, wall = time_training(cfg, continuous, filled_memory(cfg, z, v), n_eps,
+                                               serial=serial)
             row[f"{kind}_points_per_s"] = pps
             row[f"{kind}_points_per_wall_s"] = wall
             row[f"{kind}_first_call_s"] = t_first
@@ -251,7 +257,7 @@ def bench_train(settings, rng, results, quick):
         pts, dt = time_episodes(ag, 1 if quick else 2, seed=0, continuous=continuous)
         row["baseline_points_per_s"] = pts / (time.process_time() - c0)
         row["baseline_points_per_wall_s"] = pts / dt
-        for kind in ("brute", "grid"):
+        for kind in ("brute", "grid", "grid_serial"):
             if f"{kind}_points_per_s" in row:
                 row[f"{kind}_ratio"] = row[f"{kind}_points_per_s"] / row["baseline_points_per_s"]
         rows.append(row)
@@ -345,14 +351,20 @@ def markdown(results) -> str:
     if "train" in results:
         out += ["## (b) Training points/s, mountain car (epsilon-greedy episodes + reverse "
                 "replay, one seed)", "",
+                "Columns `serial`: the grid index compiled inside "
+                "`hedger_jax.runtime.serial_codegen` (no intra-op thread splitting; the "
+                "library's default from 512 KiB of stored points up).", "",
                 "| actions | capacity | stored points | brute /s | grid /s | grid /s wall | "
-                "baseline /s | brute ratio | grid ratio |", "|---|---|---|---|---|---|---|---|---|"]
+                "grid serial /s | grid serial /s wall | baseline /s | brute ratio | grid ratio | "
+                "grid serial ratio |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in results["train"]:
             out.append(f"| {r['actions']} | {r['capacity']:,} | {r['prefill']:,} | "
                        f"{fmt(r.get('brute_points_per_s'))} | {fmt(r.get('grid_points_per_s'))} | "
                        f"{fmt(r.get('grid_points_per_wall_s'))} | "
+                       f"{fmt(r.get('grid_serial_points_per_s'))} | "
+                       f"{fmt(r.get('grid_serial_points_per_wall_s'))} | "
                        f"{fmt(r['baseline_points_per_s'])} | {fmt(r.get('brute_ratio'), 1)} | "
-                       f"{fmt(r.get('grid_ratio'), 1)} |")
+                       f"{fmt(r.get('grid_ratio'), 1)} | {fmt(r.get('grid_serial_ratio'), 1)} |")
         out.append("")
     if "seeds" in results:
         out += ["## (c) Total training points/s vs vmapped seeds (discrete)", "",

@@ -28,6 +28,7 @@ import hedger_jax
 from hedger_jax.agent import BlockResult, make_train, transitions_from_demonstrations
 from hedger_jax.config import HedgerConfig
 from hedger_jax.memory import memory_check
+from hedger_jax.runtime import jit_serial_codegen, serial_codegen_wanted
 
 from experiments.figures import Variant
 
@@ -99,9 +100,11 @@ def build_variant(variant: Variant):
 def compiled_variant(variant: Variant):
     """(jit(vmap(init)), jit(vmap(run_block)) donating its state, phase-1 info), cached per
     variant so that repeated and resumed runs in one process compile once per batch size."""
-    _, _, train, info = build_variant(variant)
-    init = jax.jit(jax.vmap(train.init))
-    run_block = jax.jit(jax.vmap(train.run_block), donate_argnums=0)
+    _, config, train, info = build_variant(variant)
+    # Large memories: compile without XLA's per-op thread splitting (hedger_jax.runtime).
+    serial = serial_codegen_wanted(4 * config.dim * config.capacity)
+    init = jit_serial_codegen(jax.vmap(train.init), enabled=serial)
+    run_block = jit_serial_codegen(jax.vmap(train.run_block), enabled=serial, donate_argnums=0)
     return init, run_block, info
 
 

@@ -3,8 +3,8 @@
 Continuous actions use the paper's search (after Brent 1973): ``greedy_samples`` evenly spaced
 actions over the bounds, then successive parabolic interpolation through the best sample and
 its two neighbours, sampling at the fitted maximum, until two successive maxima are closer
-than ``greedy_tol`` or ``greedy_iters`` refinements were made (a fixed-length ``lax.scan``,
-so it jits and vmaps). The answer is always the best *evaluated* sample, so it never leaves
+than ``greedy_tol`` or ``greedy_iters`` refinements were made (a ``lax.while_loop`` over at
+most ``greedy_iters`` refinements, so it jits and vmaps). The answer is always the best *evaluated* sample, so it never leaves
 the bounds and is never worse than the initial grid.
 
 "Don't know" handling: an unknown candidate counts as ``default_value`` (as a table
@@ -78,8 +78,8 @@ def search_1d(f: Callable[[jax.Array], Tuple[jax.Array, jax.Array]], low: float,
     filled = jnp.arange(n_total) < n_samples
     any_known = jnp.any(k0)
 
-    def body(carry, i):
-        xs, fs, filled, prev, done, any_known = carry
+    def body(carry):
+        i, xs, fs, filled, prev, done, any_known = carry
         p0, p1, p2, b = _bracket(xs, fs, filled)
         vertex, concave = _parabola_vertex(p0, p1, p2)
         vertex = jnp.clip(vertex, p0[0], p2[0])
@@ -92,10 +92,15 @@ def search_1d(f: Callable[[jax.Array], Tuple[jax.Array, jax.Array]], low: float,
         filled = filled.at[slot].set(active)
         any_known = any_known | (active & kv)
         done = done | ~concave | (jnp.abs(vertex - prev) < tol)
-        return (xs, fs, filled, vertex, done, any_known), None
+        return (i + 1, xs, fs, filled, vertex, done, any_known)
 
-    init = (xs, fs, filled, jnp.float32(jnp.nan), jnp.zeros((), bool), any_known)
-    (xs, fs, filled, _, _, any_known), _ = jax.lax.scan(body, init, jnp.arange(iters))
+    # A while loop, not a fixed-length scan: a search that has converged (or found no concave
+    # bracket, e.g. while nothing is known) stops paying for evaluations it would discard.
+    # Under vmap it runs until every search is done; the result is the same either way.
+    init = (jnp.zeros((), jnp.int32), xs, fs, filled, jnp.float32(jnp.nan),
+            jnp.zeros((), bool), any_known)
+    _, xs, fs, filled, _, _, any_known = jax.lax.while_loop(
+        lambda c: (c[0] < iters) & ~c[5], body, init)
     best = jnp.argmax(jnp.where(filled, fs, _NEG))
     return xs[best], fs[best], any_known
 

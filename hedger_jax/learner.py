@@ -45,6 +45,7 @@ from hedger_jax.config import HedgerConfig
 from hedger_jax.greedy import greedy_action
 from hedger_jax.memory import Memory, init_memory, memory_check, refresh_index
 from hedger_jax.predict import predict as _predict_q
+from hedger_jax.runtime import jit_serial_codegen, serial_codegen_wanted
 from hedger_jax.validation import (InvalidInputError, check_actions, check_key,
                                    check_observations, check_transitions)
 
@@ -89,8 +90,15 @@ def make_env(env_id: str, **env_kwargs: Any):
 # ------------------------------------------------------------------------------------------
 # Jitted pieces (module level: compiled once per static settings, shared by all learners)
 # ------------------------------------------------------------------------------------------
-@functools.partial(jax.jit, static_argnames=("env", "config", "run", "max_steps",
-                                             "max_episodes"), donate_argnames=("memory",))
+def _large_memory(static: Dict[str, Any]) -> bool:
+    """Compile the training loops of large memories without XLA's per-op thread splitting."""
+    config = static["config"]
+    return serial_codegen_wanted(4 * config.dim * config.capacity)
+
+
+@functools.partial(jit_serial_codegen, enabled=_large_memory,
+                   static_argnames=("env", "config", "run", "max_steps", "max_episodes"),
+                   donate_argnames=("memory",))
 def _learn_chunk(memory: Memory, key: jax.Array, env_params: Any, budget: jax.Array, *, env,
                  config: HedgerConfig, run: RunConfig, max_steps: int, max_episodes: int):
     """Phase two: epsilon-greedy episodes + reverse replay until ``budget`` () steps were taken
@@ -121,14 +129,16 @@ def _learn_chunk(memory: Memory, key: jax.Array, env_params: Any, budget: jax.Ar
     return jax.lax.while_loop(cond, body, init)
 
 
-@functools.partial(jax.jit, static_argnames=("config",), donate_argnames=("memory",))
+@functools.partial(jit_serial_codegen, enabled=_large_memory, static_argnames=("config",),
+                   donate_argnames=("memory",))
 def _train_prefix_jit(memory: Memory, episode: Any, length: jax.Array, *, config: HedgerConfig):
     """Reverse replay of one recorded episode (leading axis T) over its first ``length`` steps."""
     return train_prefix(config, memory, episode, length)
 
 
-@functools.partial(jax.jit, static_argnames=("env", "config", "act", "init", "max_steps",
-                                             "has_start"), donate_argnames=("memory",))
+@functools.partial(jit_serial_codegen, enabled=_large_memory,
+                   static_argnames=("env", "config", "act", "init", "max_steps", "has_start"),
+                   donate_argnames=("memory",))
 def _policy_episode(memory: Memory, key: jax.Array, env_params: Any, start: Any, *, env,
                     config: HedgerConfig, act, init, max_steps: int, has_start: bool):
     """Phase one with an example policy in control: one episode, then reverse replay.

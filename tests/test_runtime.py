@@ -51,3 +51,129 @@ def test_import_hedger_jax_and_envs_apply_the_flag_before_the_backend_starts():
             "assert float(jnp.ones(2).sum()) == 2.0")
     assert SAFE_CPU_FLAG in _flags_after(code).split()
     assert _flags_after("import hedger_jax", {OPT_OUT_VARIABLE: "1"}) == ""
+
+
+# ---------------------------------------------------------------- serial code generation
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+from hedger_jax.runtime import (SERIAL_CODEGEN_MIN_BYTES, SERIAL_CODEGEN_VARIABLE,  # noqa: E402
+                                jit_serial_codegen, serial_codegen, serial_codegen_wanted)
+
+_HAS_AFFINITY = hasattr(os, "sched_getaffinity") and os.path.isdir("/proc/self/task")
+
+
+def _affinities():
+    out = {}
+    for name in os.listdir("/proc/self/task"):
+        try:
+            out[int(name)] = os.sched_getaffinity(int(name))
+        except OSError:
+            pass
+    return out
+
+
+def _gathers(table, idx):
+    """A scan of small gathers from a large table (the pattern of a HEDGER training step)."""
+    return jax.lax.scan(lambda c, i: (c + jnp.sum(table[:, i] * 2.0), None), 0.0, idx)[0]
+
+
+@pytest.mark.skipif(not _HAS_AFFINITY, reason="needs Linux thread affinity")
+def test_serial_codegen_pins_every_thread_then_restores():
+    before = _affinities()
+    with serial_codegen():
+        inside = _affinities()
+        assert all(len(a) == 1 for a in inside.values())
+        assert len({min(a) for a in inside.values()}) == 1
+    after = _affinities()
+    for tid, aff in before.items():
+        if tid in after:
+            assert after[tid] == aff
+
+
+def test_serial_codegen_restores_affinity_when_compilation_fails():
+    before = os.sched_getaffinity(0) if _HAS_AFFINITY else None
+    with pytest.raises(TypeError):
+        with serial_codegen():
+            jax.jit(lambda x: x + "a")(jnp.ones(3))
+    if _HAS_AFFINITY:
+        assert os.sched_getaffinity(0) == before
+
+
+@pytest.mark.skipif(not _HAS_AFFINITY, reason="needs Linux thread affinity")
+def test_serial_codegen_removes_op_splitting_and_keeps_results():
+    rng = np.random.default_rng(0)
+    table = jnp.asarray(rng.uniform(size=(3, 200_000)).astype(np.float32))   # 2.4 MB
+    idx = jnp.asarray(rng.integers(0, 200_000, (50, 256)).astype(np.int32))
+    default = jax.jit(_gathers).lower(table, idx).compile()
+    with serial_codegen():
+        serial = jax.jit(lambda t, i: _gathers(t, i)).lower(table, idx).compile()
+    split_default = default.as_text().count("outer_dimension_partitions")
+    split_serial = serial.as_text().count("outer_dimension_partitions")
+    if len(os.sched_getaffinity(0)) > 1:  # with one CPU nothing is ever split
+        assert split_default > 0
+    assert split_serial == 0
+    ref = np.sum(np.asarray(table, np.float64)[:, np.asarray(idx)] * 2.0)
+    np.testing.assert_allclose(float(serial(table, idx)), ref, rtol=1e-5)
+    assert float(serial(table, idx)) == float(default(table, idx))
+
+
+def test_serial_codegen_wanted_policy():
+    big, small = SERIAL_CODEGEN_MIN_BYTES, SERIAL_CODEGEN_MIN_BYTES - 1
+    on_cpu = jax.default_backend() == "cpu"
+    assert serial_codegen_wanted(big, {}) is on_cpu
+    assert serial_codegen_wanted(small, {}) is False
+    assert serial_codegen_wanted(small, {SERIAL_CODEGEN_VARIABLE: "1"}) is on_cpu
+    assert serial_codegen_wanted(big, {SERIAL_CODEGEN_VARIABLE: "0"}) is False
+    assert serial_codegen_wanted(big, {SERIAL_CODEGEN_VARIABLE: "auto"}) is on_cpu
+
+
+def test_jit_serial_codegen_matches_jit_with_static_and_donated_arguments():
+    def f(x, y, *, scale):
+        return x * scale + y, jnp.sum(y)
+
+    plain = jax.jit(f, static_argnames=("scale",))
+    wrapped = jit_serial_codegen(f, enabled=lambda kw: kw["scale"] > 1,
+                                 static_argnames=("scale",), donate_argnums=(0,))
+    x, y = jnp.arange(4.0), jnp.ones(4)
+    for scale in (1, 2, 3, 2):
+        got = wrapped(jnp.array(x), y, scale=scale)
+        want = plain(x, y, scale=scale)
+        for g, w in zip(got, want):
+            np.testing.assert_array_equal(np.asarray(g), np.asarray(w))
+    assert len(wrapped._compiled) == 2          # scale 2 and 3 compiled once each (1: plain jit)
+    wrapped(jnp.arange(5.0), jnp.ones(5), scale=2)   # a new shape -> a new executable
+    assert len(wrapped._compiled) == 3
+    assert wrapped.__name__ == "f"
+
+
+def test_learner_gives_identical_memories_with_and_without_serial_codegen(monkeypatch):
+    from hedger_jax import Hedger
+
+    out = []
+    for mode in ("1", "0"):
+        monkeypatch.setenv(SERIAL_CODEGEN_VARIABLE, mode)
+        m = Hedger("HedgerMountainCar-v0", capacity=512, seed=3)
+        m.learn(300)
+        out.append([np.asarray(getattr(m.memory, k)) for k in ("points", "values", "size")])
+    for a, b in zip(*out):
+        np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.skipif(not _HAS_AFFINITY or len(os.sched_getaffinity(0)) < 2,
+                    reason="needs Linux thread affinity and two CPUs")
+def test_backend_started_inside_serial_codegen_keeps_all_cpus_afterwards():
+    """A process whose first JAX call is inside the context must not be confined for good."""
+    code = (
+        "import jax, jax.numpy as jnp, numpy as np\n"
+        "from hedger_jax.runtime import serial_codegen\n"
+        "with serial_codegen():\n"
+        "    jax.jit(lambda x: x + 1)(jnp.ones(3))\n"
+        "t = jnp.zeros((3, 200_000)); i = jnp.zeros((50, 256), jnp.int32)\n"
+        "f = lambda t, i: jax.lax.scan(lambda c, j: (c + jnp.sum(t[:, j] * 2.0), None), 0.0, i)[0]\n"
+        "print(jax.jit(f).lower(t, i).compile().as_text().count('outer_dimension_partitions'))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, cwd=os.path.dirname(os.path.dirname(__file__)))
+    assert int(out.stdout.strip().splitlines()[-1]) > 0

@@ -35,7 +35,10 @@ _SCRIPT = textwrap.dedent("""
     assert len(out["value"].sharding.device_set) == 2, out["value"].sharding
     ref = jax.jit(jax.vmap(train))(keys)                      # unsharded reference
     assert out["value"].shape == (4, 8) and out["size"].shape == (4,)
-    np.testing.assert_allclose(np.asarray(out["value"]), np.asarray(ref["value"]), rtol=1e-6)
+    # Two differently partitioned programs may fuse the float32 sums of the local fit in a
+    # different order: equal to float32 round-off, not bit for bit.
+    np.testing.assert_allclose(np.asarray(out["value"]), np.asarray(ref["value"]), rtol=2e-5,
+                               atol=1e-7)
     np.testing.assert_array_equal(np.asarray(out["n"]), np.asarray(ref["n"]))
     toy = lambda k: jax.random.normal(k, (3,))
     odd = jax.random.split(jax.random.PRNGKey(1), 5)           # 5 seeds on 2 devices: padded
