@@ -162,6 +162,8 @@ class jit_serial_codegen:
         import jax
 
         leaves, treedef = jax.tree_util.tree_flatten(args)
+        if any(isinstance(x, jax.core.Tracer) for x in leaves):
+            return self._jitted(*args, **kwargs)   # inside a transformation (eval_shape, vmap)
         sig = (treedef, tuple(sorted(kwargs.items())),
                tuple((getattr(x, "shape", None), str(getattr(x, "dtype", type(x))),
                       getattr(x, "weak_type", False)) for x in leaves))
