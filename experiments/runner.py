@@ -101,8 +101,10 @@ def compiled_variant(variant: Variant):
     """(jit(vmap(init)), jit(vmap(run_block)) donating its state, phase-1 info), cached per
     variant so that repeated and resumed runs in one process compile once per batch size."""
     _, config, train, info = build_variant(variant)
-    # Large memories: compile without XLA's per-op thread splitting (hedger_jax.runtime).
-    serial = serial_codegen_wanted(4 * config.dim * config.capacity)
+    # Off unless HEDGER_JAX_SERIAL_CODEGEN=1: a block also evaluates hundreds of episodes at
+    # once, which gains from XLA's op splitting (Figure 2 quick: 1:42 default, 2:22 serial
+    # on 2 cores, same per-CPU time); long training-bound runs gain from "1".
+    serial = serial_codegen_wanted(4 * config.dim * config.capacity, auto=False)
     init = jit_serial_codegen(jax.vmap(train.init), enabled=serial)
     run_block = jit_serial_codegen(jax.vmap(train.run_block), enabled=serial, donate_argnums=0)
     return init, run_block, info

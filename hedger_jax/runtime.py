@@ -116,12 +116,14 @@ def serial_codegen():
                 pass
 
 
-def serial_codegen_wanted(point_bytes: int, environ: Optional[MutableMapping[str, str]] = None
-                          ) -> bool:
+def serial_codegen_wanted(point_bytes: int, environ: Optional[MutableMapping[str, str]] = None,
+                          auto: bool = True) -> bool:
     """Whether to compile a program over a memory of ``point_bytes`` with ``serial_codegen``.
 
     ``HEDGER_JAX_SERIAL_CODEGEN`` = "0" -> never, "1" -> always, otherwise (default "auto")
-    when ``point_bytes >= SERIAL_CODEGEN_MIN_BYTES``. Never off the CPU backend.
+    when ``auto`` and ``point_bytes >= SERIAL_CODEGEN_MIN_BYTES``. Never off the CPU backend.
+    Callers whose programs also contain large batched work (e.g. evaluating hundreds of
+    episodes at once, which does gain from splitting) pass ``auto=False``.
     """
     import jax
 
@@ -131,7 +133,7 @@ def serial_codegen_wanted(point_bytes: int, environ: Optional[MutableMapping[str
         return False
     if mode in ("1", "true", "on", "yes"):
         return True
-    return point_bytes >= SERIAL_CODEGEN_MIN_BYTES
+    return bool(auto) and point_bytes >= SERIAL_CODEGEN_MIN_BYTES
 
 
 class jit_serial_codegen:

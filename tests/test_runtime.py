@@ -128,6 +128,8 @@ def test_serial_codegen_wanted_policy():
     assert serial_codegen_wanted(small, {SERIAL_CODEGEN_VARIABLE: "1"}) is on_cpu
     assert serial_codegen_wanted(big, {SERIAL_CODEGEN_VARIABLE: "0"}) is False
     assert serial_codegen_wanted(big, {SERIAL_CODEGEN_VARIABLE: "auto"}) is on_cpu
+    assert serial_codegen_wanted(big, {}, auto=False) is False
+    assert serial_codegen_wanted(small, {SERIAL_CODEGEN_VARIABLE: "1"}, auto=False) is on_cpu
 
 
 def test_jit_serial_codegen_matches_jit_with_static_and_donated_arguments():
