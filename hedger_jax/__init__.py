@@ -11,7 +11,8 @@ Core API::
 Importing this package is light: it never imports brax. It appends
 ``--xla_cpu_enable_concurrency_optimized_scheduler=false`` to ``XLA_FLAGS`` (an XLA CPU
 deadlock seen in large vmapped programs; see ``hedger_jax.runtime`` for why and how to opt
-out).
+out), and offers ``serial_codegen`` for compiling training loops over large memories (see
+``hedger_jax.runtime``).
 """
 from hedger_jax.runtime import apply_safe_cpu_flags as _apply_safe_cpu_flags
 
@@ -29,6 +30,7 @@ from hedger_jax.checkpoint import (Checkpoint, CheckpointError, load_checkpoint,
                                    read_checkpoint_header, save_checkpoint)
 from hedger_jax.learner import Hedger, make_env
 from hedger_jax.validation import InvalidInputError
+from hedger_jax.runtime import jit_serial_codegen, serial_codegen
 
 __version__ = "0.1.0"
 
@@ -39,5 +41,6 @@ __all__ = [
     "greedy_value", "maximise_1d", "Transition", "TrainInfo", "train_step", "train_episode",
     "RunConfig", "make_train", "transitions_from_demonstrations", "Hedger", "make_env",
     "Checkpoint", "CheckpointError", "save_checkpoint", "load_checkpoint",
-    "read_checkpoint_header", "InvalidInputError", "__version__",
+    "read_checkpoint_header", "InvalidInputError", "serial_codegen", "jit_serial_codegen",
+    "__version__",
 ]
