@@ -64,15 +64,22 @@ def _parabola_vertex(p0, p1, p2):
     return vertex, concave
 
 
+def search_grid(low: float, high: float, n_samples: int) -> jax.Array:
+    """The initial samples of ``search_1d``: float32 (n_samples,) evenly spaced in [low, high]."""
+    return jnp.linspace(low, high, n_samples, dtype=jnp.float32)
+
+
 def search_1d(f: Callable[[jax.Array], Tuple[jax.Array, jax.Array]], low: float, high: float,
-              n_samples: int, iters: int, tol: float):
+              n_samples: int, iters: int, tol: float, initial=None):
     """Maximise f over [low, high]; f: x () -> (value (), known ()).
 
+    ``initial``: optional (values (n_samples,), known (n_samples,)) of f at
+    ``search_grid(low, high, n_samples)``, when the caller evaluated them in a batch of its own.
     Returns (x_best (), f_best (), any_known ()): the best evaluated sample.
     """
     n_total = n_samples + iters
-    grid = jnp.linspace(low, high, n_samples, dtype=jnp.float32)
-    f0, k0 = jax.vmap(f)(grid)
+    grid = search_grid(low, high, n_samples)
+    f0, k0 = jax.vmap(f)(grid) if initial is None else initial
     xs = jnp.zeros((n_total,), jnp.float32).at[:n_samples].set(grid)
     fs = jnp.full((n_total,), _NEG, jnp.float32).at[:n_samples].set(f0)
     filled = jnp.arange(n_total) < n_samples
@@ -118,13 +125,31 @@ def _discrete_values(config: HedgerConfig, memory: Memory, state: jax.Array):
     return actions, values, known
 
 
-def _continuous_search(config: HedgerConfig, memory: Memory, state: jax.Array):
+def _continuous_search(config: HedgerConfig, memory: Memory, state: jax.Array, initial=None):
     def f(a):
         v, k, _ = predict(config, memory, state, a[None])
         return v, k
 
     return search_1d(f, config.action_low[0], config.action_high[0], config.greedy_samples,
-                     config.greedy_iters, config.greedy_tol)
+                     config.greedy_iters, config.greedy_tol, initial)
+
+
+def greedy_candidates(config: HedgerConfig) -> jax.Array:
+    """The actions (n, A) that ``greedy_value`` evaluates first in one batch: the discrete set,
+    or the continuous search's initial grid."""
+    if config.is_discrete:
+        return jnp.asarray(config.discrete_actions, jnp.float32)
+    return search_grid(config.action_low[0], config.action_high[0], config.greedy_samples)[:, None]
+
+
+def greedy_value_from(config: HedgerConfig, memory: Memory, state: jax.Array,
+                      values: jax.Array, known: jax.Array):
+    """``greedy_value`` given Q(state, a) (values, known (n,)) at ``greedy_candidates``
+    (evaluated by the caller, e.g. batched with other queries). Same result."""
+    if config.is_discrete:
+        return jnp.max(values), jnp.any(known)
+    _, value, any_known = _continuous_search(config, memory, state, (values, known))
+    return value, any_known
 
 
 def greedy_value(config: HedgerConfig, memory: Memory, state: jax.Array):

@@ -252,3 +252,38 @@ def test_continuous_greedy_state_outside_memory_is_random():
     acts, _, known = _greedy_c(mem, jnp.asarray(f32([0.9])), KEYS8)
     assert not np.any(np.asarray(known))
     assert len(np.unique(np.asarray(acts))) >= 7
+
+
+@pytest.mark.parametrize("continuous", [False, True])
+def test_greedy_value_from_a_caller_batch_equals_greedy_value(continuous):
+    """train_step evaluates the first candidates of max_a' Q(s', a') in its own batch
+    (greedy_candidates + greedy_value_from); the result must be greedy_value's."""
+    from hedger_jax.greedy import greedy_candidates, greedy_value_from
+    from hedger_jax.memory import scale_inputs
+    from hedger_jax.predict import predict_scaled
+
+    kw = dict(capacity=256, bandwidth=0.15, max_neighbours=16)
+    cfg = (HedgerConfig(2, 1, action_low=(-1.0,), action_high=(1.0,), **kw) if continuous
+           else HedgerConfig(2, 1, discrete_actions=ACTS, **kw))
+    rng = np.random.default_rng(11)
+    s = f32(rng.uniform(0, 1, (200, 2)))
+    a = f32(rng.uniform(-1, 1, (200, 1))) if continuous else f32(rng.choice([-1, 0, 1], (200, 1)))
+    v = f32(np.sin(3 * s[:, 0]) - (a[:, 0] - 0.3 * s[:, 1]) ** 2)      # a smooth maximum in a
+    mem = add_points(cfg, init_memory(cfg), s, a, v)
+    acts = greedy_candidates(cfg)
+    assert acts.shape == ((cfg.greedy_samples, 1) if continuous else (3, 1))
+
+    @jax.jit
+    def both(state):
+        zs = scale_inputs(cfg, jnp.broadcast_to(state, (acts.shape[0], 2)), acts)
+        batch = jax.vmap(lambda z: predict_scaled(cfg, mem, z))(zs)
+        return greedy_value_from(cfg, mem, state, batch.value, batch.known), \
+            greedy_value(cfg, mem, state)
+
+    known = 0
+    for state in f32(rng.uniform(0.1, 0.9, (12, 2))):
+        (v1, k1), (v2, k2) = both(jnp.asarray(state))
+        assert bool(k1) == bool(k2)
+        np.testing.assert_allclose(float(v1), float(v2), rtol=1e-5, atol=1e-6)
+        known += bool(k1)
+    assert known >= 6                       # the comparison is about learned values
