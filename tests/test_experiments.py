@@ -192,16 +192,3 @@ def test_ablation_demo_variants_share_figure2_cache_key():
     fig3 = select_variants(build_figure("fig3", "quick"), ["discrete + demos"])
     assert dict(fig3.variants[1].hedger)["use_ivh"] is False
 
-
-def test_run_variant_same_results_with_serial_codegen(tmp_path, monkeypatch):
-    """The runner's serial-codegen path (auto for large memories) gives the same numbers."""
-    import dataclasses
-
-    out = {}
-    for mode in ("1", "0"):
-        monkeypatch.setenv("HEDGER_JAX_SERIAL_CODEGEN", mode)
-        variant = dataclasses.replace(TINY, label=f"tiny serial {mode}")   # own compile cache
-        out[mode] = runner.run_variant(variant, [0, 1], str(tmp_path / mode), progress=False)
-    np.testing.assert_array_equal(out["1"]["mean_steps"], out["0"]["mean_steps"])
-    for key in ("points", "memory_size", "train_steps_mean"):
-        assert out["1"][key] == out["0"][key], key

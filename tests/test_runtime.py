@@ -149,7 +149,8 @@ def test_jit_serial_codegen_matches_jit_with_static_and_donated_arguments():
     wrapped(jnp.arange(5.0), jnp.ones(5), scale=2)   # a new shape -> a new executable
     assert len(wrapped._compiled) == 3
     assert wrapped.__name__ == "f"
-    # Under a transformation the wrapper traces like jax.jit (no AOT executable involved).
+    # Under a transformation the wrapper traces like jax.jit (no AOT executable involved):
+    # the experiment runner calls jax.eval_shape on its (optionally serial) init.
     shapes = jax.eval_shape(lambda a, b: wrapped(a, b, scale=2), x, y)
     assert shapes[0].shape == (4,) and shapes[1].shape == ()
     np.testing.assert_array_equal(
