@@ -199,8 +199,9 @@ def test_neighbours_come_in_canonical_order_by_slot(kind):
     from hedger_jax.memory import refresh_index, select_neighbours
     m = refresh_index(cfg, m)
     pts = np.asarray(m.points, np.float64)[:, :60]
+    select = jax.jit(functools.partial(select_neighbours, cfg))
     for q in rng.uniform([0, 0, -1], [1, 1, 1], (20, 3)).astype(np.float32):
-        nb = select_neighbours(cfg, m, jnp.asarray(q))
+        nb = select(m, jnp.asarray(q))
         mask, idx, d2 = (np.asarray(x) for x in (nb.mask, nb.indices, nb.sqdist))
         n = int(mask.sum())
         assert mask[:n].all() and not mask[n:].any()        # real neighbours first
