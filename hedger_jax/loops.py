@@ -1,0 +1,171 @@
+"""A loop with a traced trip count that stays cheap under ``vmap``: ``masked_fori_loop``.
+
+Why: ``jax.lax.fori_loop(0, n, ...)`` with a traced ``n`` is a ``while_loop``; when ``n`` is
+batched (``vmap`` over seeds, each seed with its own episode length), JAX batches that loop by
+running it until every member is done and, after every trip, *selecting* between the new and
+the old carry for every member: an O(size of the carry) pass per trip. When the carry is a
+HEDGER memory (10^4-10^6 slots), that pass -- and the copy XLA inserts for it -- costs far more
+than the training step itself (measured: vmapped training over 8 seeds ran at 0.4x the
+per-seed rate of one seed).
+
+``masked_fori_loop(n, body, carry)`` calls ``body(i, carry, active)`` for i = 0 .. n-1; the
+body must leave ``carry`` unchanged where ``active`` is False (masking its own writes, which
+is cheap: a training step with ``valid=False`` already writes nothing). Unbatched, it is a
+plain ``fori_loop`` with ``active=True``. Under ``vmap`` with a batched ``n`` its custom
+batching rule runs one loop of ``max(n)`` trips with a shared counter ``i``, each member active
+while ``i < n`` of its own: no select over the carry. Nested ``vmap`` is handled by applying
+the same rule again at every level.
+"""
+from __future__ import annotations
+
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+from jax._src.interpreters import partial_eval as pe  # convert_constvars_jaxpr (stable)
+from jax.custom_batching import custom_vmap
+from jax.extend.core import ClosedJaxpr, jaxpr_as_fun
+
+
+def masked_fori_loop(n: jax.Array, body: Callable[[jax.Array, Any, jax.Array], Any],
+                     carry: Any) -> Any:
+    """``for i in range(n): carry = body(i, carry, active)``, vmap-friendly (see module doc).
+
+    n: int () trip count (traced or static, >= 0); body(i int32 (), carry, active bool ()) ->
+    carry with the same structure, unchanged where ``active`` is False; carry: a pytree.
+    """
+    fn, consts = _hoist_closure(body, carry)
+    return _loop(fn)(jnp.asarray(n, jnp.int32), carry, consts)
+
+
+def _hoist_closure(body: Callable, carry: Any):
+    """``body`` as ``fn(i, carry, active, *consts)`` with every value it closes over (traced or
+    not, any dtype) passed explicitly, so that the batching rule sees which are batched.
+    (``jax.closure_convert`` hoists only float tracers.)"""
+    example = (jnp.zeros((), jnp.int32), carry, jnp.ones((), bool))
+    flat, in_tree = jax.tree_util.tree_flatten(example)
+    carry_tree = jax.tree_util.tree_structure(carry)
+
+    def flat_body(*leaves):
+        out = body(*jax.tree_util.tree_unflatten(in_tree, leaves))
+        out_leaves, out_tree = jax.tree_util.tree_flatten(out)
+        if out_tree != carry_tree:
+            raise TypeError(f"masked_fori_loop: body returned {out_tree}, expected the carry's "
+                            f"structure {carry_tree}")
+        return out_leaves
+
+    closed = jax.make_jaxpr(flat_body)(*flat)
+    run = jaxpr_as_fun(ClosedJaxpr(pe.convert_constvars_jaxpr(closed.jaxpr), ()))
+
+    def fn(i, c, active, *consts):
+        leaves = jax.tree_util.tree_leaves((i, c, active))
+        return jax.tree_util.tree_unflatten(carry_tree, run(*consts, *leaves))
+
+    return fn, list(closed.consts)
+
+
+def _loop(fn: Callable) -> Callable:
+    """The custom-vmap loop for a closure-converted body ``fn(i, carry, active, *consts)``."""
+
+    @custom_vmap
+    def loop(n, carry, consts):
+        def step(i, c):
+            return fn(i, c, jnp.ones((), bool), *consts)
+
+        return jax.lax.fori_loop(0, n, step, carry)
+
+    @loop.def_vmap
+    def loop_vmap(axis_size, in_batched, n, carry, consts):
+        n_b, carry_b, consts_b = in_batched
+        # Every member's carry leaf gets the batch axis (members diverge).
+        carry = jax.tree_util.tree_map(
+            lambda x, b: x if b else jnp.broadcast_to(x, (axis_size,) + jnp.shape(x)),
+            carry, carry_b)
+        consts_axes = [0 if b else None for b in consts_b]
+        vfn = jax.vmap(fn, in_axes=(None, 0, 0, *consts_axes))
+        if not n_b:
+            def step(i, c):
+                return vfn(i, c, jnp.ones((axis_size,), bool), *consts)
+
+            return jax.lax.fori_loop(0, n, step, carry), jax.tree_util.tree_map(
+                lambda _: True, carry)
+        n_max = jnp.max(n)
+
+        def body(i, c, active):
+            return vfn(i, c, active & (i < n), *consts)
+
+        # The same masked loop one level up: an outer vmap (e.g. a hyper-parameter sweep
+        # around a seed sweep) batches n_max and gets the same treatment.
+        out = masked_fori_loop(n_max, body, carry)
+        return out, jax.tree_util.tree_map(lambda _: True, out)
+
+    return loop
+
+
+def batch_cond(pred: jax.Array, true_fn: Callable[[Any], Any], false_fn: Callable[[Any], Any],
+               operand: Any) -> Any:
+    """``lax.cond(pred, true_fn, false_fn, operand)`` that stays cheap under ``vmap``.
+
+    ``lax.cond`` with a batched predicate runs both branches for every member and selects,
+    whatever the predicates. Here, under ``vmap``, the true branch runs (for every member,
+    then selected per member) only when *some* member's predicate holds; otherwise only the
+    false branch runs. Meant for a rare, expensive branch such as merging a memory's
+    neighbour index. Per-member results are exactly those of ``lax.cond``.
+    """
+    tfn, tconsts = _hoist_branch(true_fn, operand)
+    ffn, fconsts = _hoist_branch(false_fn, operand)
+    return _cond(tfn, ffn)(jnp.asarray(pred, bool), operand, tconsts, fconsts)
+
+
+def _hoist_branch(fn: Callable, operand: Any):
+    """``fn`` as ``g(operand, *consts)`` with its closed-over values explicit (see
+    ``_hoist_closure``)."""
+    flat, in_tree = jax.tree_util.tree_flatten(operand)
+    out_tree = []
+
+    def flat_fn(*leaves):
+        out = fn(jax.tree_util.tree_unflatten(in_tree, leaves))
+        out_leaves, tree = jax.tree_util.tree_flatten(out)
+        out_tree.append(tree)
+        return out_leaves
+
+    closed = jax.make_jaxpr(flat_fn)(*flat)
+    run = jaxpr_as_fun(ClosedJaxpr(pe.convert_constvars_jaxpr(closed.jaxpr), ()))
+
+    def g(op, *consts):
+        return jax.tree_util.tree_unflatten(out_tree[0],
+                                            run(*consts, *jax.tree_util.tree_leaves(op)))
+
+    return g, list(closed.consts)
+
+
+def _cond(tfn: Callable, ffn: Callable) -> Callable:
+    @custom_vmap
+    def cond(pred, operand, tconsts, fconsts):
+        return jax.lax.cond(pred, lambda o: tfn(o, *tconsts), lambda o: ffn(o, *fconsts),
+                            operand)
+
+    @cond.def_vmap
+    def cond_vmap(axis_size, in_batched, pred, operand, tconsts, fconsts):
+        p_b, op_b, tc_b, fc_b = in_batched
+        operand = jax.tree_util.tree_map(
+            lambda x, b: x if b else jnp.broadcast_to(x, (axis_size,) + jnp.shape(x)),
+            operand, op_b)
+        vt = jax.vmap(tfn, in_axes=(0, *[0 if b else None for b in tc_b]))
+        vf = jax.vmap(ffn, in_axes=(0, *[0 if b else None for b in fc_b]))
+        if not p_b:
+            out = jax.lax.cond(pred, lambda o: vt(o, *tconsts), lambda o: vf(o, *fconsts),
+                               operand)
+            return out, jax.tree_util.tree_map(lambda _: True, out)
+
+        def some(o):
+            a, b = vt(o, *tconsts), vf(o, *fconsts)
+            return jax.tree_util.tree_map(
+                lambda x, y: jnp.where(pred.reshape((axis_size,) + (1,) * (x.ndim - 1)), x, y),
+                a, b)
+
+        # Again through batch_cond, so an outer vmap gets the same treatment.
+        out = batch_cond(jnp.any(pred), some, lambda o: vf(o, *fconsts), operand)
+        return out, jax.tree_util.tree_map(lambda _: True, out)
+
+    return cond
