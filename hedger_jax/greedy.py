@@ -18,6 +18,7 @@ from typing import Callable, Tuple
 import jax
 import jax.numpy as jnp
 
+from hedger_jax import rng
 from hedger_jax.config import HedgerConfig
 from hedger_jax.memory import Memory
 from hedger_jax.predict import predict
@@ -165,25 +166,39 @@ def greedy_value(config: HedgerConfig, memory: Memory, state: jax.Array):
     return value, known
 
 
-def greedy_action(config: HedgerConfig, memory: Memory, state: jax.Array, key: jax.Array):
-    """The greedy action: state (S,), key -> (action (A,), value (), known ()).
+def greedy_draws(config: HedgerConfig) -> int:
+    """How many U[0, 1) draws ``greedy_action_from_uniform`` uses."""
+    return len(config.discrete_actions) + 1 if config.is_discrete else config.action_dim
 
-    Ties among the best discrete actions are broken at random; when nothing is known the
-    action is uniformly random (from the set, or in the box) and ``known`` is False.
-    """
-    k_tie, k_rand = jax.random.split(key)
+
+def greedy_action_from_uniform(config: HedgerConfig, memory: Memory, state: jax.Array,
+                               u: jax.Array):
+    """``greedy_action`` with its randomness given: u float32 (``greedy_draws(config)``,) of
+    U[0, 1) draws (tie-breaks, then the random action when nothing is known)."""
     if config.is_discrete:
         actions, values, known = _discrete_values(config, memory, state)
         n = actions.shape[0]
         ties = values >= jnp.max(values)
-        pick = jnp.argmax(jnp.where(ties, jax.random.uniform(k_tie, (n,)), -1.0))
-        rand = jax.random.randint(k_rand, (), 0, n)
+        pick = jnp.argmax(jnp.where(ties, u[:n], -1.0))
+        rand = jnp.minimum((u[n] * n).astype(jnp.int32), n - 1)
         any_known = jnp.any(known)
         idx = jnp.where(any_known, pick, rand)
         return actions[idx], values[idx], any_known
     x, value, any_known = _continuous_search(config, memory, state)
     low = jnp.asarray(config.action_low, jnp.float32)
     high = jnp.asarray(config.action_high, jnp.float32)
-    rand = jax.random.uniform(k_rand, low.shape, jnp.float32, low, high)
+    rand = jnp.minimum(low + u * (high - low), high)
     action = jnp.where(any_known, x[None], rand)
     return action, jnp.where(any_known, value, jnp.float32(config.default_value)), any_known
+
+
+def greedy_action(config: HedgerConfig, memory: Memory, state: jax.Array, key: jax.Array):
+    """The greedy action: state (S,), key -> (action (A,), value (), known ()).
+
+    Ties among the best discrete actions are broken at random; when nothing is known the
+    action is uniformly random (from the set, or in the box) and ``known`` is False. The
+    randomness is one draw of ``hedger_jax.rng`` (one fused operation, not ``jax.random``'s
+    loops).
+    """
+    u = rng.uniform(key, greedy_draws(config))
+    return greedy_action_from_uniform(config, memory, state, u)
