@@ -200,14 +200,15 @@ def episodes_fn(cfg, continuous, n_episodes):
     params = env.default_params()
     run = RunConfig()
 
-    def act(k, obs, memory):
-        return explore_action(cfg, run, memory, obs, k), memory
-
     def one(memory, key):
         memory = refresh_index(cfg, memory)
         k1, k2 = jax.random.split(key)
         obs0, s0 = env.reset(k1, params)
-        ep, length = rollout(env, params, act, k2, env.max_steps, obs0, s0, memory)
+
+        def act(k, obs, act_state):
+            return explore_action(cfg, run, memory, obs, k), act_state
+
+        ep, length = rollout(env, params, act, k2, env.max_steps, obs0, s0)
         return train_prefix(cfg, memory, ep, length), length
 
     def run_eps(memory, key):

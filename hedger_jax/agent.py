@@ -29,7 +29,9 @@ import jax
 import jax.numpy as jnp
 
 from hedger_jax.config import HedgerConfig
-from hedger_jax.greedy import greedy_action
+from hedger_jax import rng
+from hedger_jax.greedy import greedy_action, greedy_action_from_uniform, greedy_draws
+from hedger_jax.loops import masked_fori_loop
 from hedger_jax.memory import Memory, init_memory, refresh_index
 from hedger_jax.train import Transition, train_episode, train_step
 
@@ -130,27 +132,41 @@ def _success(info: Any, terminated: jax.Array) -> jax.Array:
 
 def random_action(config: HedgerConfig, key: jax.Array) -> jax.Array:
     """A uniformly random action (A,): from the discrete set or in the box."""
+    return _random_action_from_uniform(config, rng.uniform(key, config.action_dim))
+
+
+def _random_action_from_uniform(config: HedgerConfig, u: jax.Array) -> jax.Array:
+    """A uniformly random action (A,) from U[0, 1) draws u (A,) (u[0] only if discrete)."""
     if config.is_discrete:
         actions = jnp.asarray(config.discrete_actions, jnp.float32)
-        return actions[jax.random.randint(key, (), 0, actions.shape[0])]
+        n = actions.shape[0]
+        return actions[jnp.minimum((u[0] * n).astype(jnp.int32), n - 1)]
     low = jnp.asarray(config.action_low, jnp.float32)
     high = jnp.asarray(config.action_high, jnp.float32)
-    return jax.random.uniform(key, low.shape, jnp.float32, low, high)
+    return jnp.minimum(low + u * (high - low), high)
 
 
 def explore_action(config: HedgerConfig, run: RunConfig, memory: Memory, obs: jax.Array,
                    key: jax.Array) -> jax.Array:
-    """Epsilon-greedy action (A,) for one observation (S,)."""
-    k_greedy, k_coin, k_explore = jax.random.split(key, 3)
-    greedy, _, _ = greedy_action(config, memory, obs, k_greedy)
+    """Epsilon-greedy action (A,) for one observation (S,).
+
+    All its randomness (the coin, the greedy policy's tie-breaks and fallback, the
+    exploratory action) is one draw of ``hedger_jax.rng``: one fused operation per step.
+    """
+    a_dim = config.action_dim
+    n_greedy = greedy_draws(config)
+    n_explore = 2 * a_dim if run.exploration == "gaussian" else a_dim
+    u = rng.uniform(key, 1 + n_greedy + n_explore)
+    greedy, _, _ = greedy_action_from_uniform(config, memory, obs, u[1:1 + n_greedy])
+    ue = u[1 + n_greedy:]
     if run.exploration == "random":
-        explore = random_action(config, k_explore)
+        explore = _random_action_from_uniform(config, ue)
     else:
         low = jnp.asarray(config.action_low, jnp.float32)
         high = jnp.asarray(config.action_high, jnp.float32)
-        noise = run.noise_std * jax.random.normal(k_explore, greedy.shape)
+        noise = run.noise_std * rng.normal_from_uniform(ue[:a_dim], ue[a_dim:])
         explore = jnp.clip(greedy + noise, low, high)
-    return jnp.where(jax.random.uniform(k_coin) < run.epsilon, explore, greedy)
+    return jnp.where(u[0] < run.epsilon, explore, greedy)
 
 
 def rollout(env: Any, env_params: Any, act, key: jax.Array, max_steps: int,
@@ -178,7 +194,8 @@ def rollout(env: Any, env_params: Any, act, key: jax.Array, max_steps: int,
 
     def body(c):
         t, done, obs, state, act_state, key, buf = c
-        key, k_act, k_step = jax.random.split(key, 3)
+        k_t = rng.fold_in(key, t)
+        k_act, k_step = rng.fold_in(k_t, 0), rng.fold_in(k_t, 1)
         action, act_state = act(k_act, obs, act_state)
         action = jnp.asarray(action, jnp.float32).reshape((a_dim,))
         next_obs, state, reward, terminated, truncated, _ = env.step(k_step, state, action,
@@ -201,13 +218,15 @@ def train_prefix(config: HedgerConfig, memory: Memory, episode: Transition, leng
     only does ``length`` steps of work (a ``fori_loop`` with a traced trip count).
     """
 
-    def body(i, mem):
-        t = length - 1 - i
+    def body(i, mem, active):
+        t = jnp.maximum(length - 1 - i, 0)
         step = jax.tree_util.tree_map(lambda x: x[t], episode)
-        mem, _ = train_step(config, mem, step)
+        mem, _ = train_step(config, mem, step._replace(valid=step.valid & active))
         return mem
 
-    return jax.lax.fori_loop(0, length, body, memory)
+    # Under vmap over seeds (each with its own length) a plain fori_loop would select between
+    # the old and new memory of every seed after every step; see ``hedger_jax.loops``.
+    return masked_fori_loop(length, body, memory)
 
 
 def evaluate_policy(env: Any, env_params: Any, act, key: jax.Array, n_episodes: int,
@@ -224,7 +243,7 @@ def evaluate_policy(env: Any, env_params: Any, act, key: jax.Array, n_episodes: 
     keys = jax.random.split(k_run, n_episodes)
 
     def one_step(obs, state, key):
-        k_a, k_s = jax.random.split(key)
+        k_a, k_s = rng.fold_in(key, 0), rng.fold_in(key, 1)
         action = jnp.reshape(act(obs, k_a), (env.action_space.action_dim,))
         next_obs, state, _, terminated, truncated, info = env.step(k_s, state, action, env_params)
         return next_obs, state, terminated, truncated, _success(info, terminated)
@@ -235,8 +254,7 @@ def evaluate_policy(env: Any, env_params: Any, act, key: jax.Array, n_episodes: 
 
     def body(c):
         t, done, success, steps, obs, states, keys = c
-        split = jax.vmap(jax.random.split)(keys)
-        keys, k_step = split[:, 0], split[:, 1]
+        k_step = jax.vmap(rng.fold_in, (0, None))(keys, t)
         nobs, nstates, term, trunc, succ = jax.vmap(one_step)(obs, states, k_step)
         active = ~done
         steps = steps + active.astype(jnp.int32)
@@ -341,14 +359,15 @@ def make_train(env: Any, config: HedgerConfig, run: RunConfig, *, env_params: An
     max_steps = int(run.train_max_steps or env.max_steps)
     phase1_fn = _phase1_fn(env, env_params, config, phase1, phase1_max_steps)
 
-    def act(k, obs, memory):
-        return explore_action(config, run, memory, obs, k), memory
-
     def one_episode(memory, key):
         memory = refresh_index(config, memory)
         k_reset, k_run = jax.random.split(key)
         obs0, s0 = env.reset(k_reset, env_params)
-        ep, length = rollout(env, env_params, act, k_run, max_steps, obs0, s0, memory)
+
+        def act(k, obs, act_state):  # the memory is read, not carried, by the rollout loop
+            return explore_action(config, run, memory, obs, k), act_state
+
+        ep, length = rollout(env, env_params, act, k_run, max_steps, obs0, s0)
         return train_prefix(config, memory, ep, length), length
 
     def do_eval(memory, key, points, episodes, mean_len):

@@ -105,9 +105,6 @@ def _learn_chunk(memory: Memory, key: jax.Array, env_params: Any, budget: jax.Ar
     or ``max_episodes`` episodes ran. Returns (memory, key, steps (), n_episodes (),
     lengths int32 (max_episodes,), returns float32 (max_episodes,))."""
 
-    def act(k, obs, mem):
-        return explore_action(config, run, mem, obs, k), mem
-
     def cond(c):
         _, _, steps, n, _, _ = c
         return (steps < budget) & (n < max_episodes)
@@ -117,7 +114,11 @@ def _learn_chunk(memory: Memory, key: jax.Array, env_params: Any, budget: jax.Ar
         key, k_reset, k_run = jax.random.split(key, 3)
         mem = refresh_index(config, mem)
         obs0, s0 = env.reset(k_reset, env_params)
-        ep, length = rollout(env, env_params, act, k_run, max_steps, obs0, s0, mem)
+
+        def act(k, obs, act_state):  # the memory is read, not carried, by the rollout loop
+            return explore_action(config, run, mem, obs, k), act_state
+
+        ep, length = rollout(env, env_params, act, k_run, max_steps, obs0, s0)
         mem = train_prefix(config, mem, ep, length)
         ret = jnp.sum(jnp.where(ep.valid, ep.reward, 0.0))
         return (mem, key, steps + length, n + 1, lengths.at[n].set(length),
