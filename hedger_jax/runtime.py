@@ -1,9 +1,10 @@
-"""XLA CPU runtime settings: one that keeps vmapped HEDGER programs from hanging, one that
-keeps XLA from splitting tiny gathers from a large memory across threads (``serial_codegen``).
+"""XLA CPU runtime settings: flags that keep vmapped HEDGER programs from hanging and from
+handing small reductions to a slow library kernel, and ``serial_codegen`` (no splitting of tiny
+gathers from a large memory across threads).
 
-With jax/jaxlib 0.10.2 on the CPU, XLA's concurrency-optimised scheduler can produce a
-program that deadlocks: every XLA worker thread waits for work, the host waits for the
-result, and the process sits at 0 % CPU forever. Seen here with
+1. **Deadlock.** With jax/jaxlib 0.10.2 on the CPU, XLA's concurrency-optimised scheduler can
+produce a program that deadlocks: every XLA worker thread waits for work, the host waits for
+the result, and the process sits at 0 % CPU forever. Seen here with
 ``jax.jit(jax.vmap(train.init))`` over 5 seeds of continuous-action mountain car (the
 Figure 3 quick variant), in 3 of 3 tries at 5 seeds on the 2-core machine (1 and 2 seeds
 finished). ``--xla_cpu_multi_thread_eigen=false``, the usual advice for XLA CPU hangs, did not
@@ -11,42 +12,75 @@ help (2 of 2 still hung); ``--xla_cpu_enable_concurrency_optimized_scheduler=fal
 (3, 5 and 8 seeds all finished, 4 of 4 tries). The flag only changes the order in which XLA
 schedules independent operations, not what they compute.
 
-``apply_safe_cpu_flags`` appends that flag to ``XLA_FLAGS``. ``import hedger_jax`` and
-``import envs`` call it, so it takes effect as long as JAX has not yet started its CPU
+2. **Small reductions.** jaxlib 0.10 hands reductions to YNNPACK kernels, which are slow on the
+tiny (32 x 4 x 9) sums of a local fit: 3x slower batched over queries, and the largest single
+cost of a vmapped training step over seeds (measured). ``NO_YNN_REDUCE_FLAG`` keeps them in
+XLA's own code. Unknown flags abort the process, so it is only added for jaxlib versions
+known to have it (``_YNN_FLAG_JAXLIB``).
+
+``apply_safe_cpu_flags`` appends these flags to ``XLA_FLAGS``. ``import hedger_jax`` and
+``import envs`` call it, so they take effect as long as JAX has not yet started its CPU
 backend (JAX reads ``XLA_FLAGS`` when the first computation runs, not at ``import jax``).
-It changes nothing when ``XLA_FLAGS`` already mentions
-``xla_cpu_enable_concurrency_optimized_scheduler`` (your choice wins), or when the
-environment variable ``HEDGER_JAX_KEEP_XLA_FLAGS`` is set to a non-empty value other than
-``0``.
+A flag that ``XLA_FLAGS`` already names is left alone (your choice wins); nothing is changed
+when the environment variable ``HEDGER_JAX_KEEP_XLA_FLAGS`` is set to a non-empty value other
+than ``0``.
 """
 from __future__ import annotations
 
 import contextlib
 import functools
 import os
-from typing import Any, Callable, Dict, MutableMapping, Optional
+from typing import Any, Callable, Dict, List, MutableMapping, Optional, Tuple
 
-#: The flag appended to ``XLA_FLAGS``.
+#: The deadlock workaround appended to ``XLA_FLAGS``.
 SAFE_CPU_FLAG = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
-_FLAG_NAME = "xla_cpu_enable_concurrency_optimized_scheduler"
+#: Keep reductions out of YNNPACK (jaxlib 0.10).
+NO_YNN_REDUCE_FLAG = "--xla_cpu_experimental_ynn_fusion_type=-LIBRARY_FUSION_TYPE_REDUCE"
+#: jaxlib (major, minor) versions that know ``NO_YNN_REDUCE_FLAG`` (checked here).
+_YNN_FLAG_JAXLIB = ((0, 10),)
 #: Set this environment variable (to anything but "" or "0") to leave ``XLA_FLAGS`` alone.
 OPT_OUT_VARIABLE = "HEDGER_JAX_KEEP_XLA_FLAGS"
 
 
-def apply_safe_cpu_flags(environ: Optional[MutableMapping[str, str]] = None) -> bool:
-    """Append ``SAFE_CPU_FLAG`` to ``environ["XLA_FLAGS"]`` (default ``os.environ``).
+def _jaxlib_version() -> Optional[Tuple[int, int]]:
+    try:
+        from importlib.metadata import version
 
-    Returns True if the flag was added, False if it was left alone (opt-out variable set, or
-    ``XLA_FLAGS`` already sets the scheduler flag). Idempotent.
+        major, minor = version("jaxlib").split(".")[:2]
+        return int(major), int(minor)
+    except Exception:  # not installed, or an unusual version string
+        return None
+
+
+def cpu_flags(jaxlib_version: Optional[Tuple[int, int]] = None) -> List[str]:
+    """The flags ``apply_safe_cpu_flags`` adds for this jaxlib (default: the installed one)."""
+    v = _jaxlib_version() if jaxlib_version is None else tuple(jaxlib_version)
+    flags = [SAFE_CPU_FLAG]
+    if v in _YNN_FLAG_JAXLIB:
+        flags.append(NO_YNN_REDUCE_FLAG)
+    return flags
+
+
+def apply_safe_cpu_flags(environ: Optional[MutableMapping[str, str]] = None,
+                         jaxlib_version: Optional[Tuple[int, int]] = None) -> bool:
+    """Append ``cpu_flags()`` to ``environ["XLA_FLAGS"]`` (default ``os.environ``), each unless
+    ``XLA_FLAGS`` already sets that flag.
+
+    Returns True if a flag was added, False if nothing was (opt-out variable set, or every
+    flag already set). Idempotent.
     """
     env = os.environ if environ is None else environ
     if env.get(OPT_OUT_VARIABLE, "") not in ("", "0"):
         return False
     flags = env.get("XLA_FLAGS", "")
-    if _FLAG_NAME in flags:
-        return False
-    env["XLA_FLAGS"] = f"{flags} {SAFE_CPU_FLAG}".strip()
-    return True
+    added = False
+    for flag in cpu_flags(jaxlib_version):
+        if flag.split("=")[0] not in flags:
+            flags = f"{flags} {flag}".strip()
+            added = True
+    if added:
+        env["XLA_FLAGS"] = flags
+    return added
 
 
 # ------------------------------------------------------------------------------------------

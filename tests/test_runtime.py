@@ -1,38 +1,55 @@
-"""The XLA CPU flag that hedger-jax applies on import (hedger_jax.runtime)."""
+"""The XLA CPU flags that hedger-jax applies on import (hedger_jax.runtime)."""
 import os
 import subprocess
 import sys
 
-from hedger_jax.runtime import OPT_OUT_VARIABLE, SAFE_CPU_FLAG, apply_safe_cpu_flags
+from hedger_jax.runtime import (NO_YNN_REDUCE_FLAG, OPT_OUT_VARIABLE, SAFE_CPU_FLAG,
+                                apply_safe_cpu_flags, cpu_flags)
+
+V010, V011 = (0, 10), (0, 11)
 
 
-def test_adds_flag_to_empty_environment_once():
+def test_flags_depend_on_the_jaxlib_version():
+    assert cpu_flags(V010) == [SAFE_CPU_FLAG, NO_YNN_REDUCE_FLAG]
+    # An unknown XLA flag aborts the process: only add it where it is known to exist.
+    assert cpu_flags(V011) == [SAFE_CPU_FLAG]
+    assert cpu_flags((0, 4)) == [SAFE_CPU_FLAG]
+
+
+def test_adds_flags_to_empty_environment_once():
     env = {}
-    assert apply_safe_cpu_flags(env) is True
-    assert env["XLA_FLAGS"] == SAFE_CPU_FLAG
-    assert apply_safe_cpu_flags(env) is False          # idempotent
+    assert apply_safe_cpu_flags(env, V010) is True
+    assert env["XLA_FLAGS"] == f"{SAFE_CPU_FLAG} {NO_YNN_REDUCE_FLAG}"
+    assert apply_safe_cpu_flags(env, V010) is False          # idempotent
+    assert env["XLA_FLAGS"] == f"{SAFE_CPU_FLAG} {NO_YNN_REDUCE_FLAG}"
+    env = {}
+    assert apply_safe_cpu_flags(env, V011) is True
     assert env["XLA_FLAGS"] == SAFE_CPU_FLAG
 
 
 def test_keeps_existing_flags():
     env = {"XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
-    apply_safe_cpu_flags(env)
+    apply_safe_cpu_flags(env, V010)
     assert env["XLA_FLAGS"].split() == ["--xla_force_host_platform_device_count=2",
-                                        SAFE_CPU_FLAG]
+                                        SAFE_CPU_FLAG, NO_YNN_REDUCE_FLAG]
 
 
 def test_user_setting_of_the_same_flag_wins():
     env = {"XLA_FLAGS": "--xla_cpu_enable_concurrency_optimized_scheduler=true"}
-    assert apply_safe_cpu_flags(env) is False
+    assert apply_safe_cpu_flags(env, V011) is False
     assert env["XLA_FLAGS"] == "--xla_cpu_enable_concurrency_optimized_scheduler=true"
+    env = {"XLA_FLAGS": "--xla_cpu_experimental_ynn_fusion_type=+LIBRARY_FUSION_TYPE_DOT"}
+    assert apply_safe_cpu_flags(env, V010) is True
+    assert env["XLA_FLAGS"].split() == ["--xla_cpu_experimental_ynn_fusion_type="
+                                        "+LIBRARY_FUSION_TYPE_DOT", SAFE_CPU_FLAG]
 
 
 def test_opt_out_variable():
     env = {OPT_OUT_VARIABLE: "1", "XLA_FLAGS": "--foo"}
-    assert apply_safe_cpu_flags(env) is False
+    assert apply_safe_cpu_flags(env, V010) is False
     assert env["XLA_FLAGS"] == "--foo"
     env = {OPT_OUT_VARIABLE: "0"}
-    assert apply_safe_cpu_flags(env) is True
+    assert apply_safe_cpu_flags(env, V010) is True
 
 
 def _flags_after(code: str, extra_env=None) -> str:
@@ -43,9 +60,9 @@ def _flags_after(code: str, extra_env=None) -> str:
     return out.stdout.strip().splitlines()[-1] if out.stdout.strip() else ""
 
 
-def test_import_hedger_jax_and_envs_apply_the_flag_before_the_backend_starts():
-    assert SAFE_CPU_FLAG in _flags_after("import hedger_jax").split()
-    assert SAFE_CPU_FLAG in _flags_after("import envs").split()
+def test_import_hedger_jax_and_envs_apply_the_flags_before_the_backend_starts():
+    assert _flags_after("import hedger_jax").split() == cpu_flags()
+    assert _flags_after("import envs").split() == cpu_flags()
     # jax imported first still works: XLA reads the flags when the backend starts.
     code = ("import jax\nimport hedger_jax\nimport jax.numpy as jnp\n"
             "assert float(jnp.ones(2).sum()) == 2.0")
