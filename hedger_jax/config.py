@@ -62,7 +62,10 @@ class HedgerConfig:
     ``AUTO_GRID_CAPACITY`` slots up); ``index_chunk`` candidates per step of the grid scan;
     ``index_bounds`` the scaled range ((lo, hi) per dimension) the grid covers (default: [0, 1]
     per state dimension and the scaled action range; points outside are clamped to the border
-    cells, never dropped).
+    cells, never dropped); ``index_levels`` the number of grid levels (finer levels keep the
+    search cost independent of the density; None: as many as the capacity makes useful);
+    ``index_recent`` the length of the sorted list of points written since the last merge of
+    the grid tables (merges happen once half of it is used).
 
     Numerics: ``ridge`` is a relative ridge added to the equilibrated normal equations;
     ``ivh_tol`` a relative tolerance on the hull test (so a stored point is inside its own hull
@@ -96,6 +99,8 @@ class HedgerConfig:
     neighbour_index: str = "auto"
     index_chunk: int = 256
     index_bounds: Optional[Tuple[Tuple[float, float], ...]] = None
+    index_levels: Optional[int] = None
+    index_recent: int = 1024
 
     def __post_init__(self):
         set_ = lambda name, value: object.__setattr__(self, name, value)  # noqa: E731
@@ -184,6 +189,16 @@ class HedgerConfig:
                 or int(self.index_chunk) < 1:
             raise ValueError(f"index_chunk: must be an integer >= 1, got {self.index_chunk!r}")
         set_("index_chunk", int(self.index_chunk))
+        if self.index_levels is not None:
+            if isinstance(self.index_levels, bool) or int(self.index_levels) != self.index_levels \
+                    or int(self.index_levels) < 1:
+                raise ValueError(f"index_levels: must be None or an integer >= 1, "
+                                 f"got {self.index_levels!r}")
+            set_("index_levels", int(self.index_levels))
+        if isinstance(self.index_recent, bool) or int(self.index_recent) != self.index_recent \
+                or int(self.index_recent) < 0:
+            raise ValueError(f"index_recent: must be an integer >= 0, got {self.index_recent!r}")
+        set_("index_recent", int(self.index_recent))
         if self.index_bounds is not None:
             try:
                 bounds = tuple((float(lo), float(hi)) for lo, hi in self.index_bounds)

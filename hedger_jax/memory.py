@@ -197,7 +197,7 @@ def add_scaled(config: HedgerConfig, memory: Memory, z: jax.Array, value: jax.Ar
     flags = flags | jnp.where(write & finite & ~room, FLAG_FULL, 0)
     index = memory.index
     if index is not None:
-        index = _grid.note_write(index, do, capacity)
+        index = _grid.note_write(config, index, z, slot, do)
     return Memory(points, values, size.astype(jnp.int32), head.astype(jnp.int32),
                   flags.astype(jnp.int32), index)
 
@@ -215,23 +215,23 @@ def add_points(config: HedgerConfig, memory: Memory, states: jax.Array, actions:
     return memory
 
 
-def refresh_index(config: HedgerConfig, memory: Memory) -> Memory:
-    """Rebuild the neighbour index (if the config uses one) for the memory's current points.
+def refresh_index(config: HedgerConfig, memory: Memory, force: bool = False) -> Memory:
+    """Bring the neighbour index (if the config uses one) up to date for fast searches.
 
-    The agent calls it at the start of every episode and before every evaluation, i.e.
-    whenever the memory is about to be queried many times without new points. With the
-    brute-force search there is no index and this is the identity. With the grid index it
-    merges the points written since the last refresh into the index (O(capacity + cells)
-    per 1024 new points; a memory without an index is indexed from scratch by a sort).
-    Points written afterwards are searched by brute force until the next refresh, so the
-    search is exact at any time.
+    The agent calls it at the start of every episode and before every evaluation. With the
+    brute-force search there is no index and this is the identity. With the grid index, the
+    points written since the last merge (searched through a sorted list of recent writes, and
+    beyond ``index_recent`` by brute force) are merged into the grid tables -- O(capacity +
+    cells) -- once half of the recent list is used, or always with ``force`` (static bool); a
+    memory without an index is indexed from scratch by a sort. The search is exact at any
+    time: refreshing only keeps it fast.
     """
     if not uses_index(config):
         return memory
     if memory.index is None:
         return memory._replace(index=_grid.build(config, memory.points, memory.size))
     return memory._replace(index=_grid.refresh(config, memory.index, memory.points,
-                                               memory.head))
+                                               memory.head, memory.size, force=force))
 
 
 def memory_check(memory: Memory) -> Memory:

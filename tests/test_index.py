@@ -89,18 +89,39 @@ def test_config_validation_names_the_field():
     assert HedgerConfig(2, capacity=10 ** 6, neighbour_index="brute").index_kind == "brute"
 
 
-def test_geometry_cells_at_least_k_thresh():
+def _assert_level_geometry(cfg, geo):
+    assert geo.levels[0].radius == pytest.approx(cfg.k_thresh)
+    for lv in geo.levels:
+        assert lv.n_cells == int(np.prod(lv.cells)) <= gi.max_cells(cfg.capacity)
+        assert lv.strides[lv.contig] == 1
+        for i, inv in enumerate(lv.inv_side):
+            if lv.bounds[i]:                      # a value dimension: one cell per value
+                assert inv == 0 and lv.cells[i] == len(lv.bounds[i]) + 1
+            elif i != lv.contig:                  # three cells cover the radius both ways
+                assert 1.0 / inv >= lv.radius
+    radii = [lv.radius for lv in geo.levels]
+    assert radii == sorted(radii, reverse=True)
+
+
+def test_geometry_cells_at_least_the_level_radius():
     cfg = _cfg("grid")
     geo = gi.geometry(cfg)
-    for i, inv in enumerate(geo.inv_side):   # the contiguous dim is searched `reach` cells out
-        assert (geo.reach if i == geo.contig else 1) / inv >= cfg.k_thresh
-    assert geo.n_cells == int(np.prod(geo.cells)) and geo.strides[geo.contig] == 1
-    # A huge grid is coarsened, never finer than k_thresh.
+    _assert_level_geometry(cfg, geo)
+    lv = geo.levels[0]
+    assert lv.cells[2] == 3 and lv.bounds[2] == (-0.5, 0.5)   # the discrete action {-1, 0, 1}
+    assert lv.contig == 1 and 1.0 / lv.inv_side[1] < cfg.k_thresh  # finely cut
+    # A huge grid is coarsened, never finer than the radius.
     big = HedgerConfig(5, 1, bandwidth=1e-3, neighbour_index="grid", capacity=100)
-    g2 = gi.geometry(big)
-    assert g2.n_cells <= gi.max_cells(100)
-    assert all((g2.reach if i == g2.contig else 1) / v >= big.k_thresh
-               for i, v in enumerate(g2.inv_side))
+    _assert_level_geometry(big, gi.geometry(big))
+    # Levels: one at small capacities, more (each finer) for large ones, or as configured.
+    assert len(gi.geometry(_cfg("grid", capacity=2000)).levels) == 1
+    assert len(gi.geometry(_cfg("grid", capacity=10 ** 6, bandwidth=0.015)).levels) > 2
+    many = _cfg("grid", index_levels=3)
+    assert len(gi.geometry(many).levels) == 3
+    _assert_level_geometry(many, gi.geometry(many))
+    # Actions closer together than the radius: the action dimension stays uniform.
+    close = HedgerConfig(2, neighbour_index="grid", discrete_actions=((0.0,), (0.01,)))
+    assert gi.geometry(close).levels[0].bounds[2] == ()
 
 
 def test_uniform_random_matches_brute():
@@ -131,10 +152,10 @@ def test_clustered_overflowing_cells_small_chunks():
 def test_cell_borders_and_threshold_distance():
     """Points on cell borders and at exactly k_thresh (in float32) from the query."""
     cb, cg = _pair()
-    geo = gi.geometry(cg)
-    side = np.float32(1.0 / geo.inv_side[0])
-    fine = np.float32(1.0 / geo.inv_side[1])                  # dim 1 is the finely cut one
-    assert geo.contig == 1 and geo.reach > 1
+    lv = gi.geometry(cg).levels[0]
+    side = np.float32(1.0 / lv.inv_side[0])
+    fine = np.float32(1.0 / lv.inv_side[1])                   # dim 1 is the finely cut one
+    assert lv.contig == 1 and fine < side
     r = np.float32(cg.k_thresh)
     xs, vs = np.meshgrid((np.arange(0, 8, dtype=np.float32) * side).astype(np.float32),
                          (np.arange(0, 8, dtype=np.float32) * fine).astype(np.float32))
@@ -189,7 +210,7 @@ def _run_writes(policy, capacity, n_writes, refresh_every, seed):
             return (add_scaled(cb, mb, z, v, w), add_scaled(cg, mg, z, v, w)), None
         return jax.lax.scan(body, (mb, mg), (zs, vs, writes))[0]
 
-    refresh = jax.jit(functools.partial(refresh_index, cg))
+    refresh = jax.jit(functools.partial(refresh_index, cg, force=True))
     mb, mg = init_memory(cb), init_memory(cg)
     done = 0
     for step, block in enumerate(refresh_every):
@@ -262,3 +283,89 @@ def test_vmap_over_memories():
                                   np.sort(np.where(b.mask, b.sqdist, -1), -1))
     refreshed = jax.vmap(functools.partial(refresh_index, cg))(stack(mems_g))
     assert refreshed.index.starts.shape[0] == 3
+
+
+def test_multi_level_dense_and_sparse_queries_match_brute():
+    """Finer levels answer dense neighbourhoods; a sparse query or one whose k-th neighbour
+    lies outside the finer level's radius falls back to level 0; all exact."""
+    rng = np.random.default_rng(7)
+    kw = dict(capacity=4000, bandwidth=0.1, max_neighbours=8, index_levels=4)
+    cb, cg = _pair(**kw)
+    dense = _uniform(rng, 3000)
+    dense[:, :2] = 0.3 + 0.08 * dense[:, :2]                  # a dense patch
+    sparse = _uniform(rng, 300)
+    pts = np.concatenate([dense, sparse])
+    queries = np.concatenate([dense[:40] + 0.003, sparse[:40], _uniform(rng, 40),
+                              np.array([[0.3, 0.38, 0.0], [0.385, 0.3, 1.0]], np.float32)])
+    mg = _memory(cg, pts)
+    _assert_same(cb, _memory(cb, pts), cg, mg, queries)
+    geo = gi.geometry(cg)
+    assert len(geo.levels) == 4
+
+    @jax.jit
+    @jax.vmap
+    def levels(z):      # the level a query is answered at, and whether it is accepted there
+        first, last, live = gi.level_rows(geo, z)
+        lv, s0, ln = gi._choose_level(geo, mg.index, first, last, live, cg.max_neighbours)
+        rec = jnp.zeros_like(s0)
+        _, d2 = gi._scan(cg, geo, mg.index, mg.head, z, lv, s0, ln, rec, rec)
+        return lv, (lv == 0) | jnp.isfinite(d2[-1])
+
+    chosen, accepted = (np.asarray(a) for a in levels(jnp.asarray(queries)))
+    assert chosen[:40].min() >= 2 and (chosen[40:80] == 0).mean() > 0.5
+    assert not accepted.all()                   # some query was rescanned at level 0
+
+
+def test_off_grid_discrete_actions_are_still_found():
+    """One cell per discrete action value; a stored point or a query with an action between
+    the values (the low-level API allows it) is still exact (cells adjacent in the action
+    dimension are scanned when near enough)."""
+    rng = np.random.default_rng(8)
+    cb, cg = _pair(bandwidth=0.2)                             # k_thresh 0.43 < 0.5 spacing
+    assert gi.geometry(cg).levels[0].bounds[2] == (-0.5, 0.5)
+    pts = _uniform(rng, 800)
+    pts[::4, 2] = rng.choice([-0.55, -0.45, 0.45, 0.52, 0.3], size=len(pts[::4]))
+    queries = np.concatenate([pts[:30], _uniform(rng, 30)])
+    queries[::3, 2] = rng.choice([-0.5, 0.49, 0.51, 0.2], size=len(queries[::3]))
+    a = _assert_same(cb, _memory(cb, pts), cg, _memory(cg, pts), queries)
+    assert a.mask.sum() > len(queries)
+
+
+def _write_all(cfg, pts, vals):
+    @jax.jit
+    def go(m, zs, vs):
+        return jax.lax.scan(lambda m, x: (add_scaled(cfg, m, x[0], x[1]), None), m, (zs, vs))[0]
+    return go(init_memory(cfg), jnp.asarray(pts), jnp.asarray(vals))
+
+
+def test_recent_list_overflow_and_saturation_stay_exact():
+    """More writes since the last merge than the recent list holds (appended after it), and in
+    a ring buffer more than the capacity (saturated: brute force), all without a refresh."""
+    rng = np.random.default_rng(9)
+    for policy, n_writes in (("error", 150), ("overwrite_oldest", 150), ("overwrite_oldest", 400)):
+        cb, cg = _pair(capacity=120, full_policy=policy, index_recent=16, max_neighbours=8,
+                       bandwidth=0.08)
+        pts = _uniform(rng, n_writes)
+        vals = rng.normal(size=n_writes).astype(np.float32)
+        mb, mg = _write_all(cb, pts, vals), _write_all(cg, pts, vals)
+        assert int(mg.index.n_new) == min(n_writes, 120 if policy == "error" else 121)
+        q = np.concatenate([_uniform(rng, 30), pts[-10:]])
+        _assert_same(cb, mb, cg, mg, q)
+        merged = jax.jit(functools.partial(refresh_index, cg))(mg)   # >= R/2 pending: merges
+        assert int(merged.index.n_new) == 0
+        _assert_same(cb, mb, cg, merged, q)
+
+
+def test_refresh_merges_lazily_and_force_always():
+    rng = np.random.default_rng(10)
+    cb, cg = _pair(capacity=300, index_recent=64)
+    pts = _uniform(rng, 40)
+    mg = _write_all(cg, pts[:20], np.zeros(20, np.float32))
+    lazy = refresh_index(cg, mg)                              # 20 < 64 / 2: nothing to do
+    assert int(lazy.index.n_new) == 20
+    forced = refresh_index(cg, mg, force=True)
+    assert int(forced.index.n_new) == 0
+    assert int(refresh_index(cg, _write_all(cg, pts, np.zeros(40, np.float32))).index.n_new) == 0
+    mb = _write_all(cb, pts[:20], np.zeros(20, np.float32))
+    for m in (lazy, forced):
+        _assert_same(cb, mb, cg, m, _uniform(rng, 20))
