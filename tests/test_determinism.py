@@ -59,3 +59,20 @@ def test_different_keys_differ(train_fns):
     assert size > 0
     assert not np.array_equal(np.asarray(a.memory.points)[:, :size],
                               np.asarray(b.memory.points)[:, :size])
+
+
+def test_train_equals_init_then_run_blocks():
+    """``train`` (one scan over the evaluations) and the runner's pieces give the same run."""
+    for run in (RUN, RunConfig(n_blocks=2, episodes_per_block=None, points_per_block=60,
+                               eval_episodes=4, eval_max_steps=50, train_max_steps=50)):
+        tr = make_train(ENV, CFG, run)
+        key = jax.random.PRNGKey(5)
+        whole = jax.jit(tr.train)(key)
+        state, first = jax.jit(tr.init)(key)
+        blocks = [first]
+        for _ in range(run.n_blocks):
+            state, res = jax.jit(tr.run_block)(state)
+            blocks.append(res)
+        pieces = (state, jax.tree_util.tree_map(lambda *x: np.stack(x), *blocks))
+        for x, y in zip(_leaves(whole), _leaves(pieces)):
+            assert x.dtype == y.dtype and x.shape == y.shape and x.tobytes() == y.tobytes()
