@@ -97,7 +97,7 @@ class HedgerConfig:
     ridge: float = 1e-6
     ivh_tol: float = 1e-3
     neighbour_index: str = "auto"
-    index_chunk: int = 256
+    index_chunk: int = 64
     index_bounds: Optional[Tuple[Tuple[float, float], ...]] = None
     index_levels: Optional[int] = None
     index_recent: int = 1024

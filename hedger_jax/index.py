@@ -40,9 +40,9 @@ Design (all shapes static, so everything jits and vmaps; N = capacity, d = dim, 
   tables -- O(N + cells) per level, so only once R / 2 have accumulated (a few episodes) or
   when forced.
 * **Scan.** The query's candidates are the concatenation of its table rows, its recent-list
-  rows and the brute-force writes; they are scanned in chunks (``index_chunk``; a smaller
-  first chunk) by a ``lax.while_loop`` keeping a running ``lax.top_k`` of the squared
-  distances, so any occupancy is exact -- a full or overflowing cell just costs more trips.
+  rows and the brute-force writes; they are scanned in chunks of ``index_chunk`` by a
+  ``lax.while_loop`` keeping a running ``lax.top_k`` of the squared distances, so any
+  occupancy is exact -- a full or overflowing cell just costs more trips.
 * **Ring buffer.** With ``full_policy="overwrite_oldest"`` a slot written since the last merge
   is masked out of the tables (its new point is in the recent list or the brute-force writes),
   and a recent-list entry is masked once its slot was written again, so no slot is ever
@@ -66,8 +66,6 @@ from hedger_jax.loops import batch_cond
 _MAX_CELLS = 1 << 22
 #: Relative margin of the cell side over the level radius (float32 round-off of coordinates).
 _SIDE_MARGIN = 1e-3
-#: Candidates read by the first (peeled) trip of the scan; later trips read ``index_chunk``.
-_FIRST_CHUNK = 64
 #: Subdivision of the contiguous dimension (cells of side radius / _FINE along it).
 _FINE = 4
 #: Points merged into the tables per O(N) pass of ``refresh``.
@@ -653,8 +651,6 @@ def _scan(config, geo: Geometry, index: GridIndex, head, z, lv, tab_start, tab_l
 
     carry = (jnp.zeros((), jnp.int32), jnp.full((k,), jnp.inf, jnp.float32),
              jnp.zeros((k,), jnp.int32))
-    if _FIRST_CHUNK > 0:  # peeled first trip (one more copy of the trip in the program)
-        carry = trip(*carry, min(_FIRST_CHUNK, chunk))
     _, best_d2, best_idx = jax.lax.while_loop(lambda c: c[0] < total,
                                               lambda c: trip(*c, chunk), carry)
     return best_idx, best_d2
