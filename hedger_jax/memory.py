@@ -229,9 +229,18 @@ def refresh_index(config: HedgerConfig, memory: Memory, force: bool = False) -> 
     if not uses_index(config):
         return memory
     if memory.index is None:
-        return memory._replace(index=_grid.build(config, memory.points, memory.size))
-    return memory._replace(index=_grid.refresh(config, memory.index, memory.points,
-                                               memory.head, memory.size, force=force))
+        return memory._replace(index=_build_jit(config, memory.points, memory.size))
+    return memory._replace(index=_refresh_jit(config, memory.index, memory.points,
+                                              memory.head, memory.size, force=bool(force)))
+
+
+# Jitted (inlined when called under a trace): called eagerly -- a loaded checkpoint, a
+# hand-built memory -- the index is built by one compiled program, not op by op (seconds).
+_build_jit = jax.jit(lambda config, points, size: _grid.build(config, points, size),
+                     static_argnums=0)
+_refresh_jit = jax.jit(lambda config, index, points, head, size, force:
+                       _grid.refresh(config, index, points, head, size, force=force),
+                       static_argnums=(0, 5))
 
 
 def memory_check(memory: Memory) -> Memory:

@@ -17,7 +17,7 @@ RUN = RunConfig(n_blocks=2, episodes_per_block=2, eval_episodes=4, eval_max_step
 @pytest.fixture(scope="module")
 def train_fns():
     tr = make_train(ENV, CFG, RUN)
-    return jax.jit(tr.train), jax.jit(jax.vmap(tr.train))
+    return jax.jit(tr.train), jax.jit(jax.vmap(tr.train)), tr
 
 
 def _leaves(out):
@@ -25,7 +25,7 @@ def _leaves(out):
 
 
 def test_same_key_bitwise_identical(train_fns):
-    train, _ = train_fns
+    train, _, _ = train_fns
     key = jax.random.PRNGKey(42)
     a = _leaves(train(key))
     b = _leaves(train(key))
@@ -38,7 +38,7 @@ def test_same_key_bitwise_identical(train_fns):
 
 
 def test_vmap_over_seeds_matches_separate_calls(train_fns):
-    train, vtrain = train_fns
+    train, vtrain, _ = train_fns
     keys = jax.random.split(jax.random.PRNGKey(7), 3)
     batched = vtrain(keys)
     for i in range(keys.shape[0]):
@@ -52,7 +52,7 @@ def test_vmap_over_seeds_matches_separate_calls(train_fns):
 
 
 def test_different_keys_differ(train_fns):
-    train, _ = train_fns
+    train, _, _ = train_fns
     a, _ = train(jax.random.PRNGKey(1))
     b, _ = train(jax.random.PRNGKey(2))
     size = min(int(a.memory.size), int(b.memory.size))
@@ -61,18 +61,31 @@ def test_different_keys_differ(train_fns):
                               np.asarray(b.memory.points)[:, :size])
 
 
-def test_train_equals_init_then_run_blocks():
+def test_train_equals_init_then_run_blocks(train_fns):
     """``train`` (one scan over the evaluations) and the runner's pieces give the same run."""
-    for run in (RUN, RunConfig(n_blocks=2, episodes_per_block=None, points_per_block=60,
-                               eval_episodes=4, eval_max_steps=50, train_max_steps=50)):
-        tr = make_train(ENV, CFG, run)
-        key = jax.random.PRNGKey(5)
-        whole = jax.jit(tr.train)(key)
-        state, first = jax.jit(tr.init)(key)
-        blocks = [first]
-        for _ in range(run.n_blocks):
-            state, res = jax.jit(tr.run_block)(state)
-            blocks.append(res)
-        pieces = (state, jax.tree_util.tree_map(lambda *x: np.stack(x), *blocks))
-        for x, y in zip(_leaves(whole), _leaves(pieces)):
-            assert x.dtype == y.dtype and x.shape == y.shape and x.tobytes() == y.tobytes()
+    train, _, tr = train_fns
+    key = jax.random.PRNGKey(5)
+    whole = train(key)
+    state, first = jax.jit(tr.init)(key)
+    blocks = [first]
+    run_block = jax.jit(tr.run_block)
+    for _ in range(RUN.n_blocks):
+        state, res = run_block(state)
+        blocks.append(res)
+    pieces = (state, jax.tree_util.tree_map(lambda *x: np.stack(x), *blocks))
+    for x, y in zip(_leaves(whole), _leaves(pieces)):
+        assert x.dtype == y.dtype and x.shape == y.shape and x.tobytes() == y.tobytes()
+
+
+def test_points_per_block_trains_whole_episodes_past_the_target():
+    run = RunConfig(n_blocks=2, episodes_per_block=None, points_per_block=60, eval_episodes=4,
+                    eval_max_steps=50, train_max_steps=50)
+    _, res = jax.jit(make_train(ENV, CFG, run).train)(jax.random.PRNGKey(5))
+    points, episodes = np.asarray(res.points), np.asarray(res.episodes)
+    assert episodes[0] == 0                       # evaluation right after phase 1
+    gained = np.diff(points)
+    assert np.all(gained >= 60)                   # each block reaches its target ...
+    # ... by whole episodes of at most train_max_steps: the last one overshoots by < 50.
+    assert np.all(gained < 60 + 50) and np.all(np.diff(episodes) >= 2)
+    mean_len = np.asarray(res.train_steps_mean)[1:]
+    np.testing.assert_allclose(mean_len * np.diff(episodes), gained, rtol=1e-6)

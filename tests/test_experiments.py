@@ -76,35 +76,38 @@ def test_run_variant_resumes_after_interruption(tmp_path):
         if block == 2:
             raise KeyboardInterrupt
 
+    # Every run in this module uses batches of 2 seeds: one compilation of the batched init and
+    # block for all of them.
+    seeds = [0, 1, 2, 3]
     with pytest.raises(KeyboardInterrupt):
-        runner.run_variant(TINY, [0, 1, 2], out, seed_batch=2, progress=False,
-                           on_block=interrupt)
+        runner.run_variant(TINY, seeds, out, seed_batch=2, progress=False, on_block=interrupt)
     assert calls == [1, 2]
     # The checkpoint holds blocks 0..2 of the first batch; resuming runs only block 3 there.
     resumed = []
-    rec = runner.run_variant(TINY, [0, 1, 2], out, seed_batch=2, progress=False,
+    rec = runner.run_variant(TINY, seeds, out, seed_batch=2, progress=False,
                              on_block=resumed.append)
-    assert resumed == [3, 1, 2, 3]  # batch 1 resumes at block 3; batch 2 (seed 2) from scratch
+    assert resumed == [3, 1, 2, 3]  # batch 1 resumes at block 3; batch 2 (seeds 2, 3) from scratch
     assert rec["complete"]
-    assert np.asarray(rec["mean_steps"]).shape == (3, 4)
-    assert np.asarray(rec["episodes"]).tolist() == [[0, 2, 4, 6]] * 3
+    assert np.asarray(rec["mean_steps"]).shape == (4, 4)
+    assert np.asarray(rec["episodes"]).tolist() == [[0, 2, 4, 6]] * 4
     ms = np.asarray(rec["mean_steps"])
     assert np.all((ms >= 1) & (ms <= 30))
-    # The same seeds run uninterrupted in one batch give the same numbers (seed i's key does
-    # not depend on batching or resumption).
-    fresh = runner.run_variant(TINY, [0, 1, 2], str(tmp_path / "fresh"), seed_batch=3,
+    # The same seeds run uninterrupted, each at another place in another batch, give the same
+    # numbers (seed i's key depends neither on batching nor on resumption).
+    swapped = [1, 0, 3, 2]
+    fresh = runner.run_variant(TINY, swapped, str(tmp_path / "fresh"), seed_batch=2,
                                progress=False)
-    np.testing.assert_allclose(fresh["mean_steps"], rec["mean_steps"], rtol=1e-5)
+    np.testing.assert_allclose(fresh["mean_steps"], ms[swapped], rtol=1e-5)
+    assert not np.allclose(ms[0], ms[1])  # the seeds really differ
     # A finished variant is read from its result file, not recomputed.
     again = []
-    runner.run_variant(TINY, [0, 1, 2], out, seed_batch=2, progress=False,
-                       on_block=again.append)
+    runner.run_variant(TINY, seeds, out, seed_batch=2, progress=False, on_block=again.append)
     assert again == []
     # The same run under another label (another figure's name for it) is shared, and is
     # reported under the label it was asked for.
     import dataclasses
     renamed = runner.run_variant(dataclasses.replace(TINY, label="tiny, as in fig. 9"),
-                                 [0, 1, 2], out, seed_batch=2, progress=False,
+                                 seeds, out, seed_batch=2, progress=False,
                                  on_block=again.append)
     assert again == [] and renamed["label"] == "tiny, as in fig. 9"
     assert renamed["mean_steps"] == rec["mean_steps"]
@@ -115,7 +118,7 @@ def test_run_variant_resumes_after_interruption(tmp_path):
 def test_corrupt_checkpoint_is_not_trusted(tmp_path):
     out = str(tmp_path)
     with pytest.raises(KeyboardInterrupt):
-        runner.run_variant(TINY, [0], out, progress=False,
+        runner.run_variant(TINY, [0, 1], out, progress=False,
                            on_block=lambda b: (_ for _ in ()).throw(KeyboardInterrupt()))
     ckpts = [p for p in os.listdir(os.path.join(out, "cache")) if p.startswith("ckpt-")]
     assert len(ckpts) == 1
@@ -123,7 +126,7 @@ def test_corrupt_checkpoint_is_not_trusted(tmp_path):
     data = open(path, "rb").read()
     open(path, "wb").write(data[: len(data) // 2])
     blocks = []
-    rec = runner.run_variant(TINY, [0], out, progress=False, on_block=blocks.append)
+    rec = runner.run_variant(TINY, [0, 1], out, progress=False, on_block=blocks.append)
     assert blocks == [1, 2, 3]  # restarted from scratch
     assert rec["complete"]
 

@@ -27,6 +27,8 @@ CFG_D = HedgerConfig(2, 1, capacity=128, bandwidth=0.1, max_neighbours=16, discr
                      default_value=0.0)
 _greedy_d = jax.jit(jax.vmap(functools.partial(greedy_action, CFG_D), in_axes=(None, None, 0)))
 _gvalue_d = jax.jit(functools.partial(greedy_value, CFG_D))
+# The discrete predictions of all ACTS at one state.
+_each_d = jax.jit(jax.vmap(functools.partial(predict, CFG_D), in_axes=(None, None, 0)))
 
 
 def _ref(cfg, Z, V, zq):
@@ -69,10 +71,10 @@ def test_discrete_argmax_picks_clearly_best_action():
     assert bool(gk)
     assert float(gv) == pytest.approx(refs[2].value, rel=1e-4)
     # each candidate's prediction, through predict, matches the reference (degenerate column)
-    for a, r in zip(ACTS, refs):
-        v, k, n = predict(CFG_D, mem, jnp.asarray(s), jnp.asarray(f32(a)))
-        assert bool(k) and int(n) == r.n
-        assert float(v) == pytest.approx(r.value, rel=1e-4)
+    v, k, n = _each_d(mem, jnp.asarray(s), jnp.asarray(f32(ACTS)))
+    for i, r in enumerate(refs):
+        assert bool(k[i]) and int(n[i]) == r.n
+        assert float(v[i]) == pytest.approx(r.value, rel=1e-4)
 
 
 def test_discrete_argmax_middle_action():
@@ -100,8 +102,8 @@ def test_unknown_candidates_count_as_default_value():
     fns = (None, None, lambda s: -1.0 + 0 * s[:, 0])
     S, A, V, mem = _discrete_memory(fns, which=(2,))
     s = jnp.asarray(f32([0.5, 0.5]))
-    v, k, _ = predict(CFG_D, mem, s, jnp.asarray(f32([1.0])))
-    assert bool(k) and float(v) == pytest.approx(-1.0, rel=1e-5)
+    v, k, _ = _each_d(mem, s, jnp.asarray(f32(ACTS)))
+    assert bool(k[2]) and float(v[2]) == pytest.approx(-1.0, rel=1e-5)
     acts, vals, known = _greedy_d(mem, s, KEYS)
     acts = np.asarray(acts)[:, 0]
     assert set(acts.tolist()) == {-1.0, 0.0}
@@ -113,10 +115,11 @@ def test_unknown_candidates_count_as_default_value():
 def test_greedy_action_key_dependence_only_for_ties():
     fns = (lambda s: 0.2 + 0 * s[:, 0], lambda s: 0.5 + 0 * s[:, 0], lambda s: 1.0 + 0 * s[:, 0])
     _, _, _, mem = _discrete_memory(fns, seed=2)
-    a1 = greedy_action(CFG_D, mem, jnp.asarray(f32([0.5, 0.5])), jax.random.PRNGKey(1))
-    a2 = greedy_action(CFG_D, mem, jnp.asarray(f32([0.5, 0.5])), jax.random.PRNGKey(2))
-    assert float(a1[0][0]) == float(a2[0][0]) == 1.0
-    assert a1[0].shape == (1,) and a1[1].shape == () and a1[2].shape == ()
+    acts, _, _ = _greedy_d(mem, jnp.asarray(f32([0.5, 0.5])), KEYS)
+    np.testing.assert_array_equal(np.asarray(acts), np.ones((N_KEYS, 1), np.float32))
+    one = jax.eval_shape(functools.partial(greedy_action, CFG_D), mem,
+                         jnp.asarray(f32([0.5, 0.5])), jax.random.PRNGKey(1))
+    assert one[0].shape == (1,) and one[1].shape == () and one[2].shape == ()
 
 
 # ------------------------------------------------------------------ maximise_1d

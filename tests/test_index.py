@@ -213,11 +213,13 @@ def _run_writes(policy, capacity, n_writes, refresh_every, seed):
     refresh = jax.jit(functools.partial(refresh_index, cg, force=True))
     mb, mg = init_memory(cb), init_memory(cg)
     done = 0
+    width = max(refresh_every)          # every block padded with skipped writes: one compile
     for step, block in enumerate(refresh_every):
-        sl = slice(done, done + block)
-        writes = rng.uniform(size=block) > 0.1                 # some writes are skipped
-        mb, mg = write_block(mb, mg, jnp.asarray(pts[sl]), jnp.asarray(vals[sl]),
-                             jnp.asarray(writes))
+        writes = np.zeros(width, bool)
+        writes[:block] = rng.uniform(size=block) > 0.1         # some writes are skipped
+        zs, vs = np.zeros((width, 3), np.float32), np.zeros(width, np.float32)
+        zs[:block], vs[:block] = pts[done:done + block], vals[done:done + block]
+        mb, mg = write_block(mb, mg, jnp.asarray(zs), jnp.asarray(vs), jnp.asarray(writes))
         done += block
         q = np.concatenate([_uniform(rng, 24), pts[max(0, done - 8):done]])
         _assert_same(cb, mb, cg, mg, q)                        # stale index: still exact
@@ -331,11 +333,22 @@ def test_off_grid_discrete_actions_are_still_found():
     assert a.mask.sum() > len(queries)
 
 
-def _write_all(cfg, pts, vals):
+@functools.lru_cache(maxsize=None)
+def _write_fn(cfg):
     @jax.jit
-    def go(m, zs, vs):
-        return jax.lax.scan(lambda m, x: (add_scaled(cfg, m, x[0], x[1]), None), m, (zs, vs))[0]
-    return go(init_memory(cfg), jnp.asarray(pts), jnp.asarray(vals))
+    def go(m, zs, vs, writes):
+        return jax.lax.scan(lambda m, x: (add_scaled(cfg, m, *x), None), m, (zs, vs, writes))[0]
+    return go
+
+
+def _write_all(cfg, pts, vals, width=400):
+    """Write pts (n, 3) one by one from an empty memory (padded to width skipped writes: one
+    compilation per config)."""
+    n = len(pts)
+    zs, vs = np.zeros((width, 3), np.float32), np.zeros(width, np.float32)
+    zs[:n], vs[:n] = pts, vals
+    return _write_fn(cfg)(init_memory(cfg), jnp.asarray(zs), jnp.asarray(vs),
+                          jnp.asarray(np.arange(width) < n))
 
 
 def test_recent_list_overflow_and_saturation_stay_exact():

@@ -179,7 +179,8 @@ def test_prediction_arrays_have_max_neighbours_entries_even_when_capacity_is_sma
     cfg = HedgerConfig(1, 1, capacity=6, bandwidth=0.1, max_neighbours=10)
     pts = f32([[0.01, 0.0], [-0.01, 0.01], [0.0, -0.01], [0.02, 0.02], [-0.02, -0.015]])
     m = add_points(cfg, init_memory(cfg), pts[:, :1], pts[:, 1:], f32(np.full(5, 3.0)))
-    p = predict_detailed(cfg, m, jnp.zeros((1,), jnp.float32), jnp.zeros((1,), jnp.float32))
+    p = jax.jit(functools.partial(predict_detailed, cfg))(m, jnp.zeros((1,), jnp.float32),
+                                                           jnp.zeros((1,), jnp.float32))
     assert bool(p.known) and int(p.n_neighbours) == 5
     assert float(p.value) == pytest.approx(3.0, rel=1e-5)
     mask = np.asarray(p.mask)

@@ -20,7 +20,7 @@ _SCRIPT = textwrap.dedent("""
     from hedger_jax.sharding import shard_seeds
 
     assert len(jax.devices()) == 2, jax.devices()
-    cfg = HedgerConfig(2, 1, capacity=256, bandwidth=0.2, neighbour_index="grid")
+    cfg = HedgerConfig(2, 1, capacity=256, bandwidth=0.2, neighbour_index="brute")
 
     def train(key):  # a small HEDGER job per seed: store points, index, predict
         k1, k2, k3 = jax.random.split(key, 3)
