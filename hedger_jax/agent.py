@@ -274,13 +274,16 @@ def evaluate_policy(env: Any, env_params: Any, act, key: jax.Array, n_episodes: 
 
 
 def evaluate(env: Any, env_params: Any, config: HedgerConfig, memory: Memory, key: jax.Array,
-             n_episodes: int, max_steps: int) -> Evaluation:
+             n_episodes: int, max_steps: int, *, refresh: bool = True) -> Evaluation:
     """Greedy policy, learning off, ``n_episodes`` from ``env.evaluation_starts`` (vmapped).
 
     The metric is the mean number of steps to the goal; an episode that does not reach it
-    within ``max_steps`` (or fails, e.g. hits a wall) counts as ``max_steps``.
+    within ``max_steps`` (or fails, e.g. hits a wall) counts as ``max_steps``. ``refresh``
+    (static): bring the neighbour index up to date first (``False`` where the caller just
+    did: the search is exact either way).
     """
-    memory = refresh_index(config, memory)
+    if refresh:
+        memory = refresh_index(config, memory)
 
     def act(obs, k):
         return greedy_action(config, memory, obs, k)[0]
@@ -313,9 +316,8 @@ def _phase1_fn(env, env_params, config: HedgerConfig, phase1, max_steps: int):
             del key
 
             def body(mem, ep):
-                mem = refresh_index(config, mem)
                 mem, _ = train_episode(config, mem, ep)
-                return mem, None
+                return refresh_index(config, mem), None
 
             memory, _ = jax.lax.scan(body, memory, episodes)
             return memory, jnp.sum(episodes.valid).astype(jnp.int32)
@@ -327,7 +329,6 @@ def _phase1_fn(env, env_params, config: HedgerConfig, phase1, max_steps: int):
     def learn_policy(memory, key):
         def body(carry, k):
             mem, points = carry
-            mem = refresh_index(config, mem)
             k_reset, k_init, k_run = jax.random.split(k, 3)
             if start is None:
                 obs0, s0 = env.reset(k_reset, env_params)
@@ -335,7 +336,7 @@ def _phase1_fn(env, env_params, config: HedgerConfig, phase1, max_steps: int):
                 obs0, s0 = env.reset_to(k_reset, env_params, jnp.asarray(start, jnp.float32))
             ep, length = rollout(env, env_params, policy.act, k_run, max_steps, obs0, s0,
                                  policy.init(k_init))
-            mem = train_prefix(config, mem, ep, length)
+            mem = refresh_index(config, train_prefix(config, mem, ep, length))
             return (mem, points + length), None
 
         (memory, points), _ = jax.lax.scan(body, (memory, jnp.zeros((), jnp.int32)),
@@ -359,8 +360,10 @@ def make_train(env: Any, config: HedgerConfig, run: RunConfig, *, env_params: An
     max_steps = int(run.train_max_steps or env.max_steps)
     phase1_fn = _phase1_fn(env, env_params, config, phase1, phase1_max_steps)
 
+    # The neighbour index is refreshed after every episode (phase 1's included), so that the
+    # evaluations, which follow an episode or phase 1, need no refresh of their own: one copy
+    # of the refresh in the program.
     def one_episode(memory, key):
-        memory = refresh_index(config, memory)
         k_reset, k_run = jax.random.split(key)
         obs0, s0 = env.reset(k_reset, env_params)
 
@@ -368,11 +371,11 @@ def make_train(env: Any, config: HedgerConfig, run: RunConfig, *, env_params: An
             return explore_action(config, run, memory, obs, k), act_state
 
         ep, length = rollout(env, env_params, act, k_run, max_steps, obs0, s0)
-        return train_prefix(config, memory, ep, length), length
+        return refresh_index(config, train_prefix(config, memory, ep, length)), length
 
     def do_eval(memory, key, points, episodes, mean_len):
         ev = evaluate(env, env_params, config, memory, key, run.eval_episodes,
-                      run.eval_max_steps)
+                      run.eval_max_steps, refresh=False)
         return BlockResult(ev, points, episodes, mean_len, memory.size, memory.flags)
 
     def phase1(key):

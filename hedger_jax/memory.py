@@ -218,8 +218,9 @@ def add_points(config: HedgerConfig, memory: Memory, states: jax.Array, actions:
 def refresh_index(config: HedgerConfig, memory: Memory, force: bool = False) -> Memory:
     """Bring the neighbour index (if the config uses one) up to date for fast searches.
 
-    The agent calls it at the start of every episode and before every evaluation. With the
-    brute-force search there is no index and this is the identity. With the grid index, the
+    The agent calls it after every episode (phase 1's included), so before every evaluation.
+    With the brute-force search there is no index and this is the identity. With the grid
+    index, the
     points written since the last merge (searched through a sorted list of recent writes, and
     beyond ``index_recent`` by brute force) are merged into the grid tables -- O(capacity +
     cells) -- once half of the recent list is used, or always with ``force`` (static bool); a
