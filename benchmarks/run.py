@@ -200,8 +200,7 @@ def episodes_fn(cfg, continuous, n_episodes):
     params = env.default_params()
     run = RunConfig()
 
-    def one(memory, key):
-        memory = refresh_index(cfg, memory)
+    def one(memory, key):            # as the agent's episodes: the index refreshed after each
         k1, k2 = jax.random.split(key)
         obs0, s0 = env.reset(k1, params)
 
@@ -209,7 +208,7 @@ def episodes_fn(cfg, continuous, n_episodes):
             return explore_action(cfg, run, memory, obs, k), act_state
 
         ep, length = rollout(env, params, act, k2, env.max_steps, obs0, s0)
-        return train_prefix(cfg, memory, ep, length), length
+        return refresh_index(cfg, train_prefix(cfg, memory, ep, length)), length
 
     def run_eps(memory, key):
         memory, lengths = jax.lax.scan(one, memory, jax.random.split(key, n_episodes))
