@@ -103,18 +103,23 @@ def _loop(fn: Callable) -> Callable:
 
 
 def batch_cond(pred: jax.Array, true_fn: Callable[[Any], Any], false_fn: Callable[[Any], Any],
-               operand: Any) -> Any:
+               operand: Any, *, compact: int = 0) -> Any:
     """``lax.cond(pred, true_fn, false_fn, operand)`` that stays cheap under ``vmap``.
 
     ``lax.cond`` with a batched predicate runs both branches for every member and selects,
-    whatever the predicates. Here, under ``vmap``, the true branch runs (for every member,
-    then selected per member) only when *some* member's predicate holds; otherwise only the
-    false branch runs. Meant for a rare, expensive branch such as merging a memory's
-    neighbour index. Per-member results are exactly those of ``lax.cond``.
+    whatever the predicates. Here, under ``vmap``, the true branch runs only when *some*
+    member's predicate holds; otherwise only the false branch runs. Meant for a rare,
+    expensive branch such as merging a memory's neighbour index. Per-member results are
+    exactly those of ``lax.cond``.
+
+    compact (static int): 0 -- the true branch, when it runs, runs for every member (then
+    selected per member). G > 0 -- only the members whose predicate holds run it, G at a time
+    (gathered into groups of G, results scattered back): for a branch that few members of a
+    large batch need, e.g. one query of 4096 that must be searched again.
     """
     tfn, tconsts = _hoist_branch(true_fn, operand)
     ffn, fconsts = _hoist_branch(false_fn, operand)
-    return _cond(tfn, ffn)(jnp.asarray(pred, bool), operand, tconsts, fconsts)
+    return _cond(tfn, ffn, int(compact))(jnp.asarray(pred, bool), operand, tconsts, fconsts)
 
 
 def _hoist_branch(fn: Callable, operand: Any):
@@ -139,7 +144,28 @@ def _hoist_branch(fn: Callable, operand: Any):
     return g, list(closed.consts)
 
 
-def _cond(tfn: Callable, ffn: Callable) -> Callable:
+def _compacted(axis_size: int, group: int, pred, operand, vt, tconsts, tc_b, falses):
+    """The true branch for the members where ``pred`` (axis_size,) holds, ``group`` at a time,
+    written over ``falses`` (the false branch's results for every member)."""
+    n_pad = -(-axis_size // group) * group
+    lanes = jnp.arange(axis_size, dtype=jnp.int32)
+    # ids[j]: the j-th member whose predicate holds; axis_size (dropped on write) beyond them.
+    slot = jnp.where(pred, jnp.cumsum(pred.astype(jnp.int32)) - 1, n_pad)
+    ids = jnp.full((n_pad,), axis_size, jnp.int32).at[slot].set(lanes, mode="drop")
+    n_groups = (jnp.sum(pred.astype(jnp.int32)) + group - 1) // group
+
+    def body(g, out):
+        sel = jax.lax.dynamic_slice(ids, (g * group,), (group,))
+        take = jnp.minimum(sel, axis_size - 1)               # padding: any member, dropped
+        op_g = jax.tree_util.tree_map(lambda x: x[take], operand)
+        tc_g = [c[take] if b else c for c, b in zip(tconsts, tc_b)]
+        res = vt(op_g, *tc_g)
+        return jax.tree_util.tree_map(lambda o, r: o.at[sel].set(r, mode="drop"), out, res)
+
+    return jax.lax.fori_loop(0, n_groups, body, falses)
+
+
+def _cond(tfn: Callable, ffn: Callable, compact: int = 0) -> Callable:
     @custom_vmap
     def cond(pred, operand, tconsts, fconsts):
         return jax.lax.cond(pred, lambda o: tfn(o, *tconsts), lambda o: ffn(o, *fconsts),
@@ -156,6 +182,13 @@ def _cond(tfn: Callable, ffn: Callable) -> Callable:
         if not p_b:
             out = jax.lax.cond(pred, lambda o: vt(o, *tconsts), lambda o: vf(o, *fconsts),
                                operand)
+            return out, jax.tree_util.tree_map(lambda _: True, out)
+
+        if compact and axis_size > compact:
+            # (A loop of zero trips when no member needs the branch; under an outer vmap the
+            # trip count is batched like any loop's.)
+            out = _compacted(axis_size, compact, pred, operand, vt, tconsts, tc_b,
+                             vf(operand, *fconsts))
             return out, jax.tree_util.tree_map(lambda _: True, out)
 
         def some(o):

@@ -112,3 +112,56 @@ def test_batch_cond_runs_the_true_branch_only_when_some_member_needs_it():
     assert counter["n"] == 0
     np.testing.assert_array_equal(g(jnp.array([False, True, False]), xs), [0.0, 101.0, 2.0])
     assert counter["n"] == 1
+
+
+def _branch_compact(p, x, y):
+    return batch_cond(p, lambda v: v * y + TABLE[:3], lambda v: v - y, x, compact=4)
+
+
+def test_batch_cond_compact_matches_lax_cond_per_member():
+    """compact=G: the members that need the true branch run it G at a time; every member's
+    result is still lax.cond's (batch sizes not a multiple of G, none / one / all true,
+    batched and unbatched closed-over values, nested vmap)."""
+    rng = np.random.default_rng(0)
+    f = jax.jit(jax.vmap(_branch_compact))
+    for n, n_true in ((11, 0), (11, 1), (11, 5), (11, 11), (3, 2), (4, 4)):
+        ps = np.zeros(n, bool)
+        ps[rng.choice(n, n_true, replace=False)] = True
+        xs = rng.normal(size=(n, 3)).astype(np.float32)
+        ys = rng.normal(size=n).astype(np.float32)
+        want = np.stack([_branch_ref(bool(p), x, y) for p, x, y in zip(ps, xs, ys)])
+        np.testing.assert_array_equal(f(jnp.asarray(ps), jnp.asarray(xs), jnp.asarray(ys)), want)
+        # unbatched operand and closed-over y
+        got = jax.vmap(_branch_compact, (0, None, None))(jnp.asarray(ps), jnp.asarray(xs[0]), 2.0)
+        np.testing.assert_array_equal(got, [_branch_ref(bool(p), xs[0], 2.0) for p in ps])
+    ps = jnp.asarray(rng.uniform(size=(3, 9)) < 0.3)
+    xs = jnp.asarray(rng.normal(size=(3, 9, 3)).astype(np.float32))
+    ys = jnp.asarray(rng.normal(size=3).astype(np.float32))
+    nested = jax.jit(jax.vmap(jax.vmap(_branch_compact, (0, 0, None))))(ps, xs, ys)
+    want = np.stack([[_branch_ref(bool(ps[i, j]), xs[i, j], ys[i]) for j in range(9)]
+                     for i in range(3)])
+    np.testing.assert_array_equal(nested, want)
+
+
+def test_batch_cond_compact_runs_the_branch_for_the_needing_members_only():
+    seen = []
+
+    def counting(v):                      # records how many members each call carries
+        def cb(a):
+            seen.append(np.asarray(a).shape[0])
+            return np.asarray(a) + 100.0
+        return jax.pure_callback(cb, jax.ShapeDtypeStruct(v.shape, v.dtype), v,
+                                 vmap_method="expand_dims")
+
+    g = jax.jit(jax.vmap(lambda p, x: batch_cond(p, counting, lambda v: v, x, compact=4)))
+    xs = jnp.arange(10.0)
+    np.testing.assert_array_equal(g(jnp.zeros(10, bool), xs), xs)
+    assert seen == []
+    p = np.zeros(10, bool)
+    p[[2, 7]] = True
+    np.testing.assert_array_equal(g(jnp.asarray(p), xs), np.where(p, xs + 100.0, xs))
+    assert seen == [4]                    # one group of 4 (2 members + padding), not 10
+    seen.clear()
+    p[[0, 1, 3, 9]] = True                # 6 members: two groups
+    np.testing.assert_array_equal(g(jnp.asarray(p), xs), np.where(p, xs + 100.0, xs))
+    assert seen == [4, 4]
