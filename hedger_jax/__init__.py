@@ -32,7 +32,7 @@ from hedger_jax.learner import Hedger, make_env
 from hedger_jax.validation import InvalidInputError
 from hedger_jax.runtime import jit_serial_codegen, serial_codegen
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 __all__ = [
     "HedgerConfig", "Memory", "MemoryFullError", "NonFiniteValueError", "FLAG_FULL",
