@@ -118,6 +118,13 @@ def _branch_compact(p, x, y):
     return batch_cond(p, lambda v: v * y + TABLE[:3], lambda v: v - y, x, compact=4)
 
 
+def _dyadic(rng, size):
+    """float32 multiples of 1/8 in [-4, 4): x * y + TABLE is exact in float32, so a fused
+    multiply-add (which XLA's CPU code may use in one program and not in another, e.g. on
+    AVX-512 machines) rounds the same as a multiply then an add."""
+    return (rng.integers(-32, 32, size=size) / 8.0).astype(np.float32)
+
+
 def test_batch_cond_compact_matches_lax_cond_per_member():
     """compact=G: the members that need the true branch run it G at a time; every member's
     result is still lax.cond's (batch sizes not a multiple of G, none / one / all true,
@@ -127,16 +134,16 @@ def test_batch_cond_compact_matches_lax_cond_per_member():
     for n, n_true in ((11, 0), (11, 1), (11, 5), (11, 11), (3, 2), (4, 4)):
         ps = np.zeros(n, bool)
         ps[rng.choice(n, n_true, replace=False)] = True
-        xs = rng.normal(size=(n, 3)).astype(np.float32)
-        ys = rng.normal(size=n).astype(np.float32)
+        xs = _dyadic(rng, (n, 3))
+        ys = _dyadic(rng, n)
         want = np.stack([_branch_ref(bool(p), x, y) for p, x, y in zip(ps, xs, ys)])
         np.testing.assert_array_equal(f(jnp.asarray(ps), jnp.asarray(xs), jnp.asarray(ys)), want)
         # unbatched operand and closed-over y
         got = jax.vmap(_branch_compact, (0, None, None))(jnp.asarray(ps), jnp.asarray(xs[0]), 2.0)
         np.testing.assert_array_equal(got, [_branch_ref(bool(p), xs[0], 2.0) for p in ps])
     ps = jnp.asarray(rng.uniform(size=(3, 9)) < 0.3)
-    xs = jnp.asarray(rng.normal(size=(3, 9, 3)).astype(np.float32))
-    ys = jnp.asarray(rng.normal(size=3).astype(np.float32))
+    xs = jnp.asarray(_dyadic(rng, (3, 9, 3)))
+    ys = jnp.asarray(_dyadic(rng, 3))
     nested = jax.jit(jax.vmap(jax.vmap(_branch_compact, (0, 0, None))))(ps, xs, ys)
     want = np.stack([[_branch_ref(bool(ps[i, j]), xs[i, j], ys[i]) for j in range(9)]
                      for i in range(3)])
