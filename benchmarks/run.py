@@ -43,7 +43,8 @@ from scipy.spatial import cKDTree  # noqa: E402
 from envs.mountain_car import MountainCar  # noqa: E402
 from hedger_jax.agent import RunConfig, explore_action, make_train, rollout, train_prefix  # noqa: E402
 from hedger_jax.config import HedgerConfig  # noqa: E402
-from hedger_jax.memory import init_memory, refresh_index, select_neighbours  # noqa: E402
+from hedger_jax.memory import (init_memory, largest_array_bytes, refresh_index,  # noqa: E402
+                               select_neighbours)
 from hedger_jax.predict import predict_scaled  # noqa: E402
 from hedger_jax.runtime import jit_serial_codegen, serial_codegen_wanted  # noqa: E402
 from numpy_baseline import NumpyHedger, time_episodes  # noqa: E402
@@ -224,7 +225,7 @@ def time_training(cfg, continuous, mem, n_episodes, n_seeds=None, serial=None):
     if n_seeds is not None:
         fn = jax.vmap(fn)
     if serial is None:
-        serial = serial_codegen_wanted(4 * cfg.dim * cfg.capacity)
+        serial = serial_codegen_wanted(largest_array_bytes(cfg))
     f = jit_serial_codegen(fn, enabled=serial, donate_argnums=(0,))
     key = jax.random.PRNGKey(0)
     keys = key if n_seeds is None else jax.random.split(key, n_seeds)

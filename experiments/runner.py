@@ -27,7 +27,7 @@ import numpy as np
 import hedger_jax
 from hedger_jax.agent import BlockResult, make_train, transitions_from_demonstrations
 from hedger_jax.config import HedgerConfig
-from hedger_jax.memory import memory_check
+from hedger_jax.memory import largest_array_bytes, memory_check
 from hedger_jax.runtime import jit_serial_codegen, serial_codegen_wanted
 
 from experiments.figures import Variant
@@ -104,7 +104,7 @@ def compiled_variant(variant: Variant):
     # Off unless HEDGER_JAX_SERIAL_CODEGEN=1: a block also evaluates hundreds of episodes at
     # once, which gains from XLA's op splitting (Figure 2 quick: 1:42 default, 2:22 serial
     # on 2 cores, same per-CPU time); long training-bound runs gain from "1".
-    serial = serial_codegen_wanted(4 * config.dim * config.capacity, auto=False)
+    serial = serial_codegen_wanted(largest_array_bytes(config), auto=False)
     init = jit_serial_codegen(jax.vmap(train.init), enabled=serial)
     run_block = jit_serial_codegen(jax.vmap(train.run_block), enabled=serial, donate_argnums=0)
     return init, run_block, info

@@ -43,7 +43,8 @@ from hedger_jax.agent import (Evaluation, RunConfig, evaluate, explore_action, r
 from hedger_jax.checkpoint import load_checkpoint, save_checkpoint
 from hedger_jax.config import HedgerConfig
 from hedger_jax.greedy import greedy_action
-from hedger_jax.memory import Memory, init_memory, memory_check, refresh_index
+from hedger_jax.memory import (Memory, init_memory, largest_array_bytes, memory_check,
+                               refresh_index)
 from hedger_jax.predict import predict as _predict_q
 from hedger_jax.runtime import jit_serial_codegen, serial_codegen_wanted
 from hedger_jax.validation import (InvalidInputError, check_actions, check_key,
@@ -93,7 +94,7 @@ def make_env(env_id: str, **env_kwargs: Any):
 def _large_memory(static: Dict[str, Any]) -> bool:
     """Compile the training loops of large memories without XLA's per-op thread splitting."""
     config = static["config"]
-    return serial_codegen_wanted(4 * config.dim * config.capacity)
+    return serial_codegen_wanted(largest_array_bytes(config))
 
 
 @functools.partial(jit_serial_codegen, enabled=_large_memory,

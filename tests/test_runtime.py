@@ -149,6 +149,29 @@ def test_serial_codegen_wanted_policy():
     assert serial_codegen_wanted(small, {SERIAL_CODEGEN_VARIABLE: "1"}, auto=False) is on_cpu
 
 
+def test_largest_array_bytes_counts_the_index_tables(monkeypatch):
+    """The policy looks at a memory's largest array, the grid index's tables included: at
+    24,000 slots of 3-d points the grid's sorted copy of the points (576,000 B) crosses the
+    threshold while the point array (288,000 B) does not."""
+    from hedger_jax import learner
+    from hedger_jax.config import HedgerConfig
+    from hedger_jax.memory import init_memory, largest_array_bytes
+
+    for kind in ("brute", "grid"):
+        for cap in (600, 24_000):
+            cfg = HedgerConfig(2, 1, capacity=cap, neighbour_index=kind)
+            want = max(x.nbytes for x in jax.tree_util.tree_leaves(init_memory(cfg)))
+            assert largest_array_bytes(cfg) == want
+    grid = HedgerConfig(2, 1, capacity=24_000, neighbour_index="grid")
+    brute = grid.replace(neighbour_index="brute")
+    assert largest_array_bytes(brute) == 4 * 3 * 24_000 < SERIAL_CODEGEN_MIN_BYTES
+    assert largest_array_bytes(grid) >= SERIAL_CODEGEN_MIN_BYTES
+    monkeypatch.delenv(SERIAL_CODEGEN_VARIABLE, raising=False)
+    on_cpu = jax.default_backend() == "cpu"
+    assert learner._large_memory({"config": grid}) is on_cpu
+    assert learner._large_memory({"config": brute}) is False
+
+
 def test_jit_serial_codegen_matches_jit_with_static_and_donated_arguments():
     def f(x, y, *, scale):
         return x * scale + y, jnp.sum(y)
