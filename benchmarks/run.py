@@ -220,12 +220,13 @@ def episodes_fn(cfg, continuous, n_episodes):
 
 def time_training(cfg, continuous, mem, n_episodes, n_seeds=None, serial=None):
     """(points per CPU-second, first-call seconds, points per wall-second). ``serial``:
-    compile inside ``hedger_jax.runtime.serial_codegen`` (None: the library's auto policy)."""
+    compile inside ``hedger_jax.runtime.serial_codegen`` (None: the library's auto policy,
+    on the vmapped memory's largest array: n_seeds times one seed's)."""
     fn = episodes_fn(cfg, continuous, n_episodes)
     if n_seeds is not None:
         fn = jax.vmap(fn)
     if serial is None:
-        serial = serial_codegen_wanted(largest_array_bytes(cfg))
+        serial = serial_codegen_wanted(largest_array_bytes(cfg) * (n_seeds or 1))
     f = jit_serial_codegen(fn, enabled=serial, donate_argnums=(0,))
     key = jax.random.PRNGKey(0)
     keys = key if n_seeds is None else jax.random.split(key, n_seeds)

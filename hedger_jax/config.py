@@ -14,12 +14,13 @@ from typing import Any, Optional, Tuple
 FULL_POLICIES = ("error", "overwrite_oldest")
 NEIGHBOUR_INDEXES = ("auto", "brute", "grid")
 #: ``neighbour_index="auto"`` uses the grid index from ``AUTO_GRID_CAPACITY_LOW_DIM`` slots up
-#: for inputs of at most ``AUTO_GRID_LOW_DIM`` dimensions (mountain car: training 1.4x faster
-#: than brute force at 512 slots, 5x at 1,000-2,000, 10x at 10,000; measured on the 2-core
-#: CPU, README "Performance"), and from ``AUTO_GRID_CAPACITY`` up otherwise (a grid cell
-#: covers less of a higher-dimensional space but a query scans 3^(d-1) rows of cells: the
-#: corridor (d = 4) still trained faster per CPU-second by brute force at 12,000 slots).
-AUTO_GRID_LOW_DIM = 3
+#: for inputs of at most ``AUTO_GRID_LOW_DIM`` dimensions, measured with ``Hedger.learn`` on
+#: the 2-core CPU (README "Performance"): mountain car (d = 3) trained 1.4x faster than by
+#: brute force at 512 slots, 5x at 1,000-2,000, 10x at 10,000; the corridor (d = 4) 1.8x at
+#: 4,000 and 1.0-2.2x per CPU-second (1.5-2.2x wall-clock) at 12,000. Higher-dimensional
+#: inputs (a query scans 3^(d-1) rows of cells) keep brute force up to ``AUTO_GRID_CAPACITY``
+#: (not measured here).
+AUTO_GRID_LOW_DIM = 4
 AUTO_GRID_CAPACITY_LOW_DIM = 512
 AUTO_GRID_CAPACITY = 16_384
 
@@ -66,7 +67,7 @@ class HedgerConfig:
 
     Neighbour search: ``neighbour_index`` "brute" (scan every slot), "grid" (the exact grid
     index of ``hedger_jax.index``: same neighbour sets) or "auto" (grid from
-    ``AUTO_GRID_CAPACITY_LOW_DIM`` = 512 slots up for inputs of at most 3 dimensions, from
+    ``AUTO_GRID_CAPACITY_LOW_DIM`` = 512 slots up for inputs of at most 4 dimensions, from
     ``AUTO_GRID_CAPACITY`` = 16,384 for more); ``index_chunk`` candidates per step of the grid scan;
     ``index_bounds`` the scaled range ((lo, hi) per dimension) the grid covers (default: [0, 1]
     per state dimension and the scaled action range; points outside are clamped to the border

@@ -84,11 +84,12 @@ def test_config_validation_names_the_field():
         HedgerConfig(2, index_bounds=((0, 1), (0, 1)))
     with pytest.raises(ValueError, match="index_bounds"):
         HedgerConfig(2, index_bounds=((0, 1), (1, 0), (0, 1)))
-    # auto: grid from 512 slots for d <= 3 (here 2 + 1), from 16,384 for d >= 4.
+    # auto: grid from 512 slots for d <= 4 (state dims + 1 action), from 16,384 for d >= 5.
     assert HedgerConfig(2, capacity=511).index_kind == "brute"
     assert HedgerConfig(2, capacity=512).index_kind == "grid"
-    assert HedgerConfig(3, capacity=16_383).index_kind == "brute"
-    assert HedgerConfig(3, capacity=16_384).index_kind == "grid"
+    assert HedgerConfig(3, capacity=512).index_kind == "grid"
+    assert HedgerConfig(4, capacity=16_383).index_kind == "brute"
+    assert HedgerConfig(4, capacity=16_384).index_kind == "grid"
     assert HedgerConfig(2, capacity=10 ** 6).index_kind == "grid"
     assert HedgerConfig(2, capacity=10 ** 6, neighbour_index="brute").index_kind == "brute"
 
