@@ -157,16 +157,22 @@ def explore_action(config: HedgerConfig, run: RunConfig, memory: Memory, obs: ja
     n_greedy = greedy_draws(config)
     n_explore = 2 * a_dim if run.exploration == "gaussian" else a_dim
     u = rng.uniform(key, 1 + n_greedy + n_explore)
-    greedy, _, _ = greedy_action_from_uniform(config, memory, obs, u[1:1 + n_greedy])
     ue = u[1 + n_greedy:]
+    explore_now = u[0] < run.epsilon
+
+    def greedy(_):
+        return greedy_action_from_uniform(config, memory, obs, u[1:1 + n_greedy])[0]
+
     if run.exploration == "random":
-        explore = _random_action_from_uniform(config, ue)
-    else:
-        low = jnp.asarray(config.action_low, jnp.float32)
-        high = jnp.asarray(config.action_high, jnp.float32)
-        noise = run.noise_std * rng.normal_from_uniform(ue[:a_dim], ue[a_dim:])
-        explore = jnp.clip(greedy + noise, low, high)
-    return jnp.where(u[0] < run.epsilon, explore, greedy)
+        # A random exploratory step needs no greedy search: skipped (an epsilon share of the
+        # steps; under vmap the branch becomes a select and both run, as before).
+        return jax.lax.cond(explore_now, lambda _: _random_action_from_uniform(config, ue),
+                            greedy, None)
+    action = greedy(None)
+    low = jnp.asarray(config.action_low, jnp.float32)
+    high = jnp.asarray(config.action_high, jnp.float32)
+    noise = run.noise_std * rng.normal_from_uniform(ue[:a_dim], ue[a_dim:])
+    return jnp.where(explore_now, jnp.clip(action + noise, low, high), action)
 
 
 def rollout(env: Any, env_params: Any, act, key: jax.Array, max_steps: int,

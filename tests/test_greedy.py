@@ -290,3 +290,40 @@ def test_greedy_value_from_a_caller_batch_equals_greedy_value(continuous):
         np.testing.assert_allclose(float(v1), float(v2), rtol=1e-5, atol=1e-6)
         known += bool(k1)
     assert known >= 6                       # the comparison is about learned values
+
+
+@pytest.mark.parametrize("continuous", [False, True])
+def test_explore_action_is_random_with_probability_epsilon_else_greedy(continuous):
+    """explore_action (random exploration) skips the greedy search on exploratory steps; its
+    action is still, key by key, the random action when the coin u[0] < epsilon and the
+    greedy action otherwise, from the same single draw (jitted and vmapped over keys)."""
+    from hedger_jax import rng
+    from hedger_jax.agent import RunConfig, _random_action_from_uniform, explore_action
+    from hedger_jax.greedy import greedy_action_from_uniform, greedy_draws
+
+    kw = dict(capacity=256, bandwidth=0.15, max_neighbours=16)
+    cfg = (HedgerConfig(2, 1, action_low=(-1.0,), action_high=(1.0,), **kw) if continuous
+           else HedgerConfig(2, 1, discrete_actions=ACTS, **kw))
+    run = RunConfig(epsilon=0.3)
+    g = np.random.default_rng(3)
+    s = f32(g.uniform(0, 1, (150, 2)))
+    a = f32(g.uniform(-1, 1, (150, 1))) if continuous else f32(g.choice([-1, 0, 1], (150, 1)))
+    mem = add_points(cfg, init_memory(cfg), s, a, f32(np.sin(3 * s[:, 0]) - a[:, 0] ** 2))
+    obs = jnp.asarray(f32([0.45, 0.55]))
+    n_g = greedy_draws(cfg)
+
+    def reference(key):
+        u = rng.uniform(key, 1 + n_g + 1)
+        greedy = greedy_action_from_uniform(cfg, mem, obs, u[1:1 + n_g])[0]
+        return u[0] < run.epsilon, jnp.where(u[0] < run.epsilon,
+                                             _random_action_from_uniform(cfg, u[1 + n_g:]),
+                                             greedy)
+
+    keys = jax.random.split(jax.random.PRNGKey(7), 64)
+    got = jax.jit(jax.vmap(lambda k: explore_action(cfg, run, mem, obs, k)))(keys)
+    explored, want = jax.jit(jax.vmap(reference))(keys)
+    np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+    one = jax.jit(lambda k: explore_action(cfg, run, mem, obs, k))
+    np.testing.assert_array_equal(np.stack([np.asarray(one(k)) for k in keys[:16]]),
+                                  np.asarray(want[:16]))
+    assert 5 <= int(np.sum(np.asarray(explored))) <= 35        # both branches were taken
