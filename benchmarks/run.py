@@ -52,6 +52,19 @@ from numpy_baseline import NumpyHedger, time_episodes  # noqa: E402
 DISCRETE = ((-1.0,), (0.0,), (1.0,))
 
 
+def cpu_model() -> str:
+    """The CPU's model name and family from /proc/cpuinfo (Linux), else platform's guess."""
+    try:
+        with open("/proc/cpuinfo") as fh:
+            info = dict(line.split(":", 1) for line in fh.read().split("\n\n")[0].splitlines()
+                        if ":" in line)
+        info = {k.strip(): v.strip() for k, v in info.items()}
+        return f"{info.get('model name', '?')} (family {info.get('cpu family', '?')}, " \
+               f"model {info.get('model', '?')})"
+    except OSError:
+        return platform.processor() or "unknown"
+
+
 def maxrss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
@@ -343,7 +356,8 @@ def fmt(x, nd=0):
 def markdown(results) -> str:
     m = results["machine"]
     out = [f"# hedger-jax benchmarks ({results['date']})", "",
-           f"Machine: {m['cpu_count']} CPU cores, {m['platform']}, jax {m['jax']} "
+           f"Machine: {m['cpu_count']} CPU cores ({m.get('cpu', 'CPU not recorded')}), "
+           f"{m['platform']}, jax {m['jax']} "
            f"({m['backend']}), load average at start {m['load_start']}, at end "
            f"{m.get('load_end', '-')}. Mode: {'quick' if results['quick'] else 'full'}.", "",
            "Baseline = float64 NumPy + scipy cKDTree HEDGER in the same process "
@@ -432,7 +446,8 @@ def main(argv=None):
     rng = np.random.default_rng(0)
     results = {"date": datetime.datetime.now().isoformat(timespec="seconds"),
                "quick": args.quick,
-               "machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(),
+               "machine": {"cpu_count": os.cpu_count(), "cpu": cpu_model(),
+                           "platform": platform.platform(),
                            "jax": jax.__version__, "backend": jax.default_backend(),
                            "load_start": os.getloadavg()},
                "maxrss_mb": {"start": maxrss_mb()}}
