@@ -235,18 +235,32 @@ def train_prefix(config: HedgerConfig, memory: Memory, episode: Transition, leng
     return masked_fori_loop(length, body, memory)
 
 
+#: Episodes of an evaluation stepped at once (``evaluate_policy``'s ``lanes``): a lane whose
+#: episode ended takes the next waiting one, so a batch of many short episodes and a few
+#: capped ones does not step finished episodes until the longest ends. Measured (learned
+#: mountain-car policy, 200 and 1,000 episodes, 2-core CPU): 16-64 lanes per seed 2-3x faster
+#: than all episodes at once, one seed or five vmapped; more lanes approach the old cost.
+EVAL_LANES = 32
+
+
 def evaluate_policy(env: Any, env_params: Any, act, key: jax.Array, n_episodes: int,
-                    max_steps: int):
+                    max_steps: int, lanes: Optional[int] = None):
     """Run ``act(obs (S,), key) -> action (A,)`` (vmapped, no learning) from ``n_episodes``
-    ``env.evaluation_starts`` until every episode ended or ``max_steps``.
+    ``env.evaluation_starts``, each until it ends or reaches ``max_steps``.
 
     Returns (steps float32 (n,), success bool (n,)): the steps to the goal of each episode,
     ``max_steps`` for one that did not reach it (a timeout or a failure such as a wall).
-    Episodes that ended stop being stepped (masked), so short runs end early.
+
+    ``lanes`` (static; default ``min(n, EVAL_LANES)``) episodes are stepped at once (vmapped);
+    when one ends, its lane starts the next waiting episode, until all have run. Episode i
+    always starts from start i and draws its step-t randomness from key i folded with t, so
+    the results do not depend on ``lanes`` (tested); the loop ends once every episode has.
     """
     k_starts, k_run = jax.random.split(key)
-    obs, states = env.evaluation_starts(k_starts, env_params, n_episodes)
+    obs0, states0 = env.evaluation_starts(k_starts, env_params, n_episodes)
     keys = jax.random.split(k_run, n_episodes)
+    n = n_episodes
+    w = min(int(lanes or EVAL_LANES), n)
 
     def one_step(obs, state, key):
         k_a, k_s = rng.fold_in(key, 0), rng.fold_in(key, 1)
@@ -254,28 +268,42 @@ def evaluate_policy(env: Any, env_params: Any, act, key: jax.Array, n_episodes: 
         next_obs, state, _, terminated, truncated, info = env.step(k_s, state, action, env_params)
         return next_obs, state, terminated, truncated, _success(info, terminated)
 
-    def cond(c):
-        t, done = c[0], c[1]
-        return (t < max_steps) & ~jnp.all(done)
+    def lane_select(mask, new, old):
+        return jax.tree_util.tree_map(
+            lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - 1)), a, b),
+            new, old)
 
     def body(c):
-        t, done, success, steps, obs, states, keys = c
-        k_step = jax.vmap(rng.fold_in, (0, None))(keys, t)
+        next_ep, ep, t, live, succeeded, obs, states, steps_out, success_out = c
+        k_step = jax.vmap(rng.fold_in)(keys[ep], t)
         nobs, nstates, term, trunc, succ = jax.vmap(one_step)(obs, states, k_step)
-        active = ~done
-        steps = steps + active.astype(jnp.int32)
-        success = success | (active & succ)
-        done = done | (active & (term | trunc))
-        keep = lambda new, old: jnp.where(  # noqa: E731
-            active.reshape(active.shape + (1,) * (new.ndim - 1)), new, old)
-        obs = keep(nobs, obs)
-        states = jax.tree_util.tree_map(keep, nstates, states)
-        return t + 1, done, success, steps, obs, states, keys
+        succeeded = succeeded | succ
+        t = t + 1
+        ended = live & (term | trunc | (t >= max_steps))
+        at = jnp.where(ended, ep, n)                                  # n: nothing recorded
+        steps_out = steps_out.at[at].set(t, mode="drop")
+        success_out = success_out.at[at].set(succeeded, mode="drop")
+        # Lanes whose episode ended take the next waiting episodes, in lane order.
+        new_ep = next_ep + jnp.cumsum(ended.astype(jnp.int32)) - 1
+        refill = ended & (new_ep < n)
+        start = jnp.minimum(new_ep, n - 1)
+        obs = lane_select(refill, obs0[start], lane_select(live, nobs, obs))
+        states = lane_select(refill, jax.tree_util.tree_map(lambda x: x[start], states0),
+                             lane_select(live, nstates, states))
+        ep = jnp.where(refill, new_ep, ep)
+        t = jnp.where(refill, 0, t)
+        succeeded = succeeded & ~ended
+        live = (live & ~ended) | refill
+        next_ep = next_ep + jnp.sum(ended.astype(jnp.int32))
+        return next_ep, ep, t, live, succeeded, obs, states, steps_out, success_out
 
-    n = n_episodes
-    init = (jnp.zeros((), jnp.int32), jnp.zeros((n,), bool), jnp.zeros((n,), bool),
-            jnp.zeros((n,), jnp.int32), obs, states, keys)
-    _, _, success, steps, _, _, _ = jax.lax.while_loop(cond, body, init)
+    first = jnp.arange(w, dtype=jnp.int32)
+    init = (jnp.int32(w), first, jnp.zeros((w,), jnp.int32), jnp.ones((w,), bool),
+            jnp.zeros((w,), bool), obs0[first],
+            jax.tree_util.tree_map(lambda x: x[first], states0),
+            jnp.full((n,), max_steps, jnp.int32), jnp.zeros((n,), bool))
+    out = jax.lax.while_loop(lambda c: jnp.any(c[3]), body, init)
+    steps, success = out[7], out[8]
     return jnp.where(success, steps, max_steps).astype(jnp.float32), success
 
 
