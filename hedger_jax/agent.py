@@ -256,6 +256,8 @@ def evaluate_policy(env: Any, env_params: Any, act, key: jax.Array, n_episodes: 
     always starts from start i and draws its step-t randomness from key i folded with t, so
     the results do not depend on ``lanes`` (tested); the loop ends once every episode has.
     """
+    if lanes is not None and int(lanes) < 1:
+        raise ValueError(f"lanes: must be >= 1, got {lanes}")
     k_starts, k_run = jax.random.split(key)
     obs0, states0 = env.evaluation_starts(k_starts, env_params, n_episodes)
     keys = jax.random.split(k_run, n_episodes)

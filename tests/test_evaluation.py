@@ -76,3 +76,8 @@ def test_lanes_under_vmap_over_seeds_equal_separate_calls():
                                                     MAX_STEPS, lanes=N))(keys[i])
         np.testing.assert_array_equal(np.asarray(steps[i]), np.asarray(s1))
         np.testing.assert_array_equal(np.asarray(success[i]), np.asarray(ok1))
+
+
+def test_lanes_must_be_positive():
+    with pytest.raises(ValueError, match="lanes"):
+        evaluate_policy(ENV, PARAMS, _noisy_pump, jax.random.PRNGKey(0), N, MAX_STEPS, lanes=0)
