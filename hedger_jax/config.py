@@ -23,6 +23,11 @@ NEIGHBOUR_INDEXES = ("auto", "brute", "grid")
 AUTO_GRID_LOW_DIM = 4
 AUTO_GRID_CAPACITY_LOW_DIM = 512
 AUTO_GRID_CAPACITY = 16_384
+#: ... and only when a query's rows cover at most this fraction of a uniformly filled memory
+#: (``index.scanned_fraction``): with a wide kernel or many dimensions the grid reads a large
+#: part of the memory through many rows and brute force is faster (d = 4, bandwidth 0.1,
+#: fraction 0.065: brute force 2x faster at 20,000 slots; d = 8, 0.07: 10x).
+AUTO_GRID_MAX_FRACTION = 0.02
 
 
 def _tuple_of_floats(name: str, value: Any, length: int) -> Tuple[float, ...]:
@@ -68,7 +73,8 @@ class HedgerConfig:
     Neighbour search: ``neighbour_index`` "brute" (scan every slot), "grid" (the exact grid
     index of ``hedger_jax.index``: same neighbour sets) or "auto" (grid from
     ``AUTO_GRID_CAPACITY_LOW_DIM`` = 512 slots up for inputs of at most 4 dimensions, from
-    ``AUTO_GRID_CAPACITY`` = 16,384 for more); ``index_chunk`` candidates per step of the grid scan;
+    ``AUTO_GRID_CAPACITY`` = 16,384 for more, unless the kernel is wide against the input
+    ranges: ``AUTO_GRID_MAX_FRACTION``); ``index_chunk`` candidates per step of the grid scan;
     ``index_bounds`` the scaled range ((lo, hi) per dimension) the grid covers (default: [0, 1]
     per state dimension and the scaled action range; points outside are clamped to the border
     cells, never dropped); ``index_levels`` the number of grid levels (finer levels keep the
@@ -240,7 +246,11 @@ class HedgerConfig:
         if self.neighbour_index == "auto":
             low_dim = self.dim <= AUTO_GRID_LOW_DIM
             threshold = AUTO_GRID_CAPACITY_LOW_DIM if low_dim else AUTO_GRID_CAPACITY
-            return "grid" if self.capacity >= threshold else "brute"
+            if self.capacity < threshold:
+                return "brute"
+            from hedger_jax.index import scanned_fraction
+
+            return "grid" if scanned_fraction(self) <= AUTO_GRID_MAX_FRACTION else "brute"
         return self.neighbour_index
 
     @property

@@ -90,6 +90,13 @@ def test_config_validation_names_the_field():
     assert HedgerConfig(3, capacity=512).index_kind == "grid"
     assert HedgerConfig(4, capacity=16_383).index_kind == "brute"
     assert HedgerConfig(4, capacity=16_384).index_kind == "grid"
+    # ... unless a query's rows would cover more than AUTO_GRID_MAX_FRACTION of the memory
+    # (a wide kernel against the input ranges): then brute force at any capacity.
+    from hedger_jax.config import AUTO_GRID_MAX_FRACTION
+    wide = HedgerConfig(3, capacity=20_000, bandwidth=0.1)
+    assert gi.scanned_fraction(wide) > AUTO_GRID_MAX_FRACTION and wide.index_kind == "brute"
+    narrow = HedgerConfig(3, capacity=20_000, bandwidth=0.015)
+    assert gi.scanned_fraction(narrow) < AUTO_GRID_MAX_FRACTION and narrow.index_kind == "grid"
     assert HedgerConfig(2, capacity=10 ** 6).index_kind == "grid"
     assert HedgerConfig(2, capacity=10 ** 6, neighbour_index="brute").index_kind == "brute"
 
@@ -387,3 +394,28 @@ def test_refresh_merges_lazily_and_force_always():
     mb = _write_all(cb, pts[:20], np.zeros(20, np.float32))
     for m in (lazy, forced):
         _assert_same(cb, mb, cg, m, _uniform(rng, 20))
+
+
+def test_scanned_fraction_bounds_what_a_query_reads():
+    """index.scanned_fraction (the auto index's guard) is an upper bound of the share of a
+    uniformly filled memory in a query's live level-0 rows (measured here by counting the
+    table entries of those rows), and it orders a narrow and a wide kernel as the counts do."""
+    rng = np.random.default_rng(0)
+    shares = {}
+    for bw in (0.015, 0.1):
+        cfg = HedgerConfig(3, capacity=20_000, bandwidth=bw, neighbour_index="grid")
+        b = np.array(gi.default_bounds(cfg))
+        pts = rng.uniform(b[:, 0], b[:, 1], (20_000, 4)).astype(np.float32)
+        index = gi.build(cfg, jnp.asarray(pts.T), jnp.int32(20_000))
+        geo = gi.geometry(cfg)
+        lo, hi = b[:, 0] + 0.3 * (b[:, 1] - b[:, 0]), b[:, 1] - 0.3 * (b[:, 1] - b[:, 0])
+        queries = jnp.asarray(rng.uniform(lo, hi, (200, 4)).astype(np.float32))
+
+        def count(z):
+            first, last, live = gi.level_rows(geo, z)
+            s = index.starts
+            return jnp.sum(jnp.where(live[0], s[last[0] + 1] - s[first[0]], 0))
+
+        shares[bw] = float(jnp.mean(jax.jit(jax.vmap(count))(queries))) / 20_000
+        assert 0 < shares[bw] <= gi.scanned_fraction(cfg)
+    assert shares[0.1] > 10 * shares[0.015]
