@@ -71,12 +71,13 @@ def search_grid(low: float, high: float, n_samples: int) -> jax.Array:
 
 
 def search_1d(f: Callable[[jax.Array], Tuple[jax.Array, jax.Array]], low: float, high: float,
-              n_samples: int, iters: int, tol: float, initial=None):
+              n_samples: int, iters: int, tol: float, initial=None, with_count: bool = False):
     """Maximise f over [low, high]; f: x () -> (value (), known ()).
 
     ``initial``: optional (values (n_samples,), known (n_samples,)) of f at
     ``search_grid(low, high, n_samples)``, when the caller evaluated them in a batch of its own.
-    Returns (x_best (), f_best (), any_known ()): the best evaluated sample.
+    Returns (x_best (), f_best (), any_known ()): the best evaluated sample; with
+    ``with_count`` also the number of refinement evaluations (int32 (), at most ``iters``).
     """
     n_total = n_samples + iters
     grid = search_grid(low, high, n_samples)
@@ -84,32 +85,39 @@ def search_1d(f: Callable[[jax.Array], Tuple[jax.Array, jax.Array]], low: float,
     xs = jnp.zeros((n_total,), jnp.float32).at[:n_samples].set(grid)
     fs = jnp.full((n_total,), _NEG, jnp.float32).at[:n_samples].set(f0)
     filled = jnp.arange(n_total) < n_samples
-    any_known = jnp.any(k0)
+
+    def propose(xs, fs, filled):
+        """The next sample: the vertex of the parabola through the best sample and its
+        neighbours, and whether it is worth evaluating (a maximum, not a sample already
+        evaluated: f there is known, and the search would only propose it again)."""
+        p0, p1, p2, _ = _bracket(xs, fs, filled)
+        vertex, concave = _parabola_vertex(p0, p1, p2)
+        vertex = jnp.clip(jnp.clip(vertex, p0[0], p2[0]), low, high)
+        return vertex, concave & ~jnp.any(filled & (xs == vertex))
 
     def body(carry):
-        i, xs, fs, filled, prev, done, any_known = carry
-        p0, p1, p2, b = _bracket(xs, fs, filled)
-        vertex, concave = _parabola_vertex(p0, p1, p2)
-        vertex = jnp.clip(vertex, p0[0], p2[0])
-        vertex = jnp.clip(vertex, low, high)
-        active = ~done & concave
+        i, xs, fs, filled, prev, vertex, _, any_known = carry
         fv, kv = f(vertex)
         slot = n_samples + i
-        xs = xs.at[slot].set(vertex)
-        fs = fs.at[slot].set(jnp.where(active, fv, _NEG))
-        filled = filled.at[slot].set(active)
-        any_known = any_known | (active & kv)
-        done = done | ~concave | (jnp.abs(vertex - prev) < tol)
-        return (i + 1, xs, fs, filled, vertex, done, any_known)
+        xs, fs, filled = xs.at[slot].set(vertex), fs.at[slot].set(fv), filled.at[slot].set(True)
+        any_known = any_known | kv
+        nxt, worth = propose(xs, fs, filled)
+        go = worth & (i + 1 < iters) & ~(jnp.abs(vertex - prev) < tol)
+        return (i + 1, xs, fs, filled, vertex, nxt, go, any_known)
 
     # A while loop, not a fixed-length scan: a search that has converged (or found no concave
-    # bracket, e.g. while nothing is known) stops paying for evaluations it would discard.
-    # Under vmap it runs until every search is done; the result is the same either way.
-    init = (jnp.zeros((), jnp.int32), xs, fs, filled, jnp.float32(jnp.nan),
-            jnp.zeros((), bool), any_known)
-    _, xs, fs, filled, _, _, any_known = jax.lax.while_loop(
-        lambda c: (c[0] < iters) & ~c[5], body, init)
+    # bracket, e.g. while nothing is known) stops paying for evaluations. Each evaluation is
+    # of a new concave vertex: one that would be discarded (not a maximum) or repeat a sample
+    # is never made (same result as evaluating it, as in the paper's loop). Under vmap the
+    # loop runs until every search is done; the result is the same either way.
+    vertex, worth = propose(xs, fs, filled)
+    init = (jnp.zeros((), jnp.int32), xs, fs, filled, jnp.float32(jnp.nan), vertex,
+            worth & (iters > 0), jnp.any(k0))
+    n_evals, xs, fs, filled, _, _, _, any_known = jax.lax.while_loop(lambda c: c[6], body,
+                                                                      init)
     best = jnp.argmax(jnp.where(filled, fs, _NEG))
+    if with_count:
+        return xs[best], fs[best], any_known, n_evals
     return xs[best], fs[best], any_known
 
 

@@ -174,6 +174,74 @@ def test_maximise_1d_other_interval_and_linear():
     assert float(x) == pytest.approx(0.123, abs=1e-3)
 
 
+def _plain_search(f, low, high, n, iters, tol):
+    """The paper's loop as first written: every iteration evaluates the parabola's vertex and
+    discards it when it is not a maximum; it stops after a non-concave bracket or two maxima
+    closer than tol. -> (x_best, f_best, any_known, number of vertex evaluations)."""
+    from hedger_jax.greedy import _bracket, _parabola_vertex, search_grid
+    grid = search_grid(low, high, n)
+    f0, k0 = jax.vmap(f)(grid)
+    xs = jnp.zeros((n + iters,), jnp.float32).at[:n].set(grid)
+    fs = jnp.full((n + iters,), -jnp.inf, jnp.float32).at[:n].set(f0)
+    filled = jnp.arange(n + iters) < n
+
+    def body(c):
+        i, xs, fs, filled, prev, done, anyk, evals = c
+        p0, p1, p2, _ = _bracket(xs, fs, filled)
+        v, concave = _parabola_vertex(p0, p1, p2)
+        v = jnp.clip(jnp.clip(v, p0[0], p2[0]), low, high)
+        active = ~done & concave
+        fv, kv = f(v)
+        xs, fs = xs.at[n + i].set(v), fs.at[n + i].set(jnp.where(active, fv, -jnp.inf))
+        filled = filled.at[n + i].set(active)
+        done = done | ~concave | (jnp.abs(v - prev) < tol)
+        return i + 1, xs, fs, filled, v, done, anyk | (active & kv), evals + 1
+
+    init = (0, xs, fs, filled, jnp.float32(jnp.nan), False, jnp.any(k0), 0)
+    _, xs, fs, filled, _, _, anyk, evals = jax.lax.while_loop(
+        lambda c: (c[0] < iters) & ~c[5], body, init)
+    best = jnp.argmax(jnp.where(filled, fs, -jnp.inf))
+    return xs[best], fs[best], anyk, evals
+
+
+def _test_functions():
+    """f(x, params) families: smooth concave, bumpy, flat (all unknown), steps (vertices on
+    samples), maxima at the bounds."""
+    def smooth(x, p):
+        return -(x - p[0]) ** 2 * (1.0 + p[1]), x > p[2]
+
+    def bumpy(x, p):
+        return jnp.sin(7.0 * x + 5.0 * p[0]) * jnp.exp(-x * p[1]), jnp.abs(x - p[2]) < 0.5
+
+    def flat(x, p):
+        return jnp.zeros_like(x), jnp.zeros_like(x, bool)
+
+    def steps(x, p):
+        return -jnp.abs(jnp.round(4.0 * (x - p[0])) / 4.0), jnp.ones_like(x, bool)
+
+    def edge(x, p):
+        return 3.0 * p[0] * x - x * x, x < 0.0
+
+    return [smooth, bumpy, flat, steps, edge]
+
+
+@pytest.mark.parametrize("fn", _test_functions(), ids=lambda fn: fn.__name__)
+def test_search_1d_same_answer_as_the_plain_loop_with_fewer_evaluations(fn):
+    from hedger_jax.greedy import search_1d
+    params = jnp.asarray(np.random.default_rng(3).uniform(-1.0, 1.0, (64, 3)), jnp.float32)
+    got = jax.jit(jax.vmap(lambda p: search_1d(lambda x: fn(x, p), -1.0, 1.0, 11, 8, 1e-3,
+                                               with_count=True)))(params)
+    want = jax.jit(jax.vmap(lambda p: _plain_search(lambda x: fn(x, p), -1.0, 1.0, 11, 8,
+                                                    1e-3)))(params)
+    for a, b in zip(got[:3], want[:3]):      # best x, its value, any known: bit for bit
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    ours, plain = np.asarray(got[3]), np.asarray(want[3])
+    assert np.all(ours <= plain) and np.all(ours <= 8)
+    # The plain loop's last evaluation is often wasted: a vertex that is not a maximum (flat:
+    # 64 -> 0 evaluations) or that repeats a sample (smooth: 128 -> 89, measured).
+    assert ours.sum() < plain.sum()
+
+
 # ------------------------------------------------------------------ continuous greedy
 CFG_C = HedgerConfig(1, 1, capacity=256, bandwidth=0.1, max_neighbours=32, action_low=(-1.0,),
                      action_high=(1.0,), greedy_samples=11, greedy_iters=8, greedy_tol=1e-3)
