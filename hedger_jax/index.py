@@ -68,6 +68,9 @@ _MAX_CELLS = 1 << 22
 _SIDE_MARGIN = 1e-3
 #: Queries rescanned at level 0 together under vmap (``loops.batch_cond``'s ``compact``).
 _RESCAN_GROUP = 16
+#: Queries that go on scanning after ``first_trips`` together under vmap (``batch_cond``'s
+#: ``compact``).
+_REST_GROUP = 16
 #: Subdivision of the contiguous dimension (cells of side radius / _FINE along it).
 _FINE = 4
 #: Points merged into the tables per O(N) pass of ``refresh``.
@@ -664,9 +667,31 @@ def _scan(config, geo: Geometry, index: GridIndex, head, z, lv, tab_start, tab_l
 
     carry = (jnp.zeros((), jnp.int32), jnp.full((k,), jnp.inf, jnp.float32),
              jnp.zeros((k,), jnp.int32))
-    _, best_d2, best_idx = jax.lax.while_loop(lambda c: c[0] < total,
-                                              lambda c: trip(*c, chunk), carry)
+    # Two stages: the first ``first_trips(config)`` trips for every query, then the rest for
+    # the queries that have more candidates. Under vmap a while loop runs as many trips as
+    # the query with the most candidates needs, for every query of the batch: at 3e5 slots
+    # mean 2.8 trips, max 6 (measured, 4096 uniform queries). The rest runs only for the
+    # queries that need it, ``_REST_GROUP`` at a time (``loops.batch_cond``'s ``compact``).
+    # Same candidates in the same order: bit-identical results.
+    first = first_trips(config) * chunk
+    carry = jax.lax.while_loop(lambda c: (c[0] < total) & (c[0] < first),
+                               lambda c: trip(*c, chunk), carry)
+
+    def rest(c):
+        return jax.lax.while_loop(lambda c: c[0] < total, lambda c: trip(*c, chunk), c)
+
+    _, best_d2, best_idx = batch_cond(carry[0] < total, rest, lambda c: c, carry,
+                                      compact=_REST_GROUP)
     return best_idx, best_d2
+
+
+def first_trips(config) -> int:
+    """Trips of the grid scan made for every query of a vmapped batch before only those with
+    more candidates go on: enough for twice the candidates a finer level's rows hold when
+    that level is chosen (``_LEVEL_TARGET`` x k), so few queries go on (3e5 uniform points:
+    2 %; 1e6: 1 %)."""
+    k = min(config.max_neighbours, config.capacity)
+    return max(1, -(-2 * _LEVEL_TARGET * k // int(config.index_chunk)))
 
 
 def _sqdist(points: jax.Array, z: jax.Array) -> jax.Array:

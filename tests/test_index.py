@@ -161,6 +161,38 @@ def test_clustered_overflowing_cells_small_chunks():
     _assert_same(cb, _memory(cb, pts), cg, mg, queries)
 
 
+def test_scan_rest_runs_for_the_queries_with_more_candidates_only():
+    """The scan's second stage (queries with more than ``first_trips`` chunks of candidates,
+    gathered 16 at a time under vmap): a batch of dense-cluster and sparse queries, vmapped and
+    one by one, both exactly the brute-force sets."""
+    rng = np.random.default_rng(11)
+    cb, cg = _pair(index_chunk=8, max_neighbours=8)
+    cluster = np.repeat(_uniform(rng, 2), 400, axis=0) \
+        + rng.normal(0, 0.005, (800, 3)).astype(np.float32)
+    cluster[:, 2] = np.round(cluster[:, 2])
+    pts = np.concatenate([cluster, _uniform(rng, 700)])
+    queries = np.concatenate([cluster[::40] + 0.001, _uniform(rng, 40)])   # 20 dense, 40 not
+    mb, mg = _memory(cb, pts), _memory(cg, pts)
+    geo = gi.geometry(cg)
+
+    @jax.jit
+    @jax.vmap
+    def candidates(z):
+        first, last, live = gi.level_rows(geo, z)
+        return jnp.sum(gi._choose_level(geo, mg.index, first, last, live, 8)[2])
+
+    n_cand = np.asarray(candidates(jnp.asarray(queries)))
+    more = n_cand > gi.first_trips(cg) * cg.index_chunk
+    assert 16 < more.sum() < len(queries) // 2          # several groups, not every query
+    _assert_same(cb, mb, cg, mg, queries)
+    batched = jax.device_get(_select_fn(cg)(mg, jnp.asarray(queries)))
+    one = jax.jit(lambda z: select_neighbours(cg, mg, z))
+    for i, z in enumerate(queries):
+        single = one(jnp.asarray(z))
+        np.testing.assert_array_equal(np.asarray(single.indices), batched.indices[i])
+        np.testing.assert_array_equal(np.asarray(single.sqdist), batched.sqdist[i])
+
+
 def test_cell_borders_and_threshold_distance():
     """Points on cell borders and at exactly k_thresh (in float32) from the query."""
     cb, cg = _pair()
