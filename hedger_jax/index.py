@@ -674,8 +674,16 @@ def _scan(config, geo: Geometry, index: GridIndex, head, z, lv, tab_start, tab_l
     # queries that need it, ``_REST_GROUP`` at a time (``loops.batch_cond``'s ``compact``).
     # Same candidates in the same order: bit-identical results.
     first = first_trips(config) * chunk
-    carry = jax.lax.while_loop(lambda c: (c[0] < total) & (c[0] < first),
-                               lambda c: trip(*c, chunk), carry)
+    if L > 1:
+        # Several levels: a query's rows at its level hold about _LEVEL_TARGET k to twice that
+        # many candidates, so the first stage is one wide trip (one top_k over k + first
+        # values instead of first_trips over k + chunk: batched selection 1.2x at 3e5 and 1e6,
+        # measured). One level (small memories): rows hold anything from 0 candidates up, so
+        # chunk-sized trips, stopping early.
+        carry = trip(*carry, first)
+    else:
+        carry = jax.lax.while_loop(lambda c: (c[0] < total) & (c[0] < first),
+                                   lambda c: trip(*c, chunk), carry)
 
     def rest(c):
         return jax.lax.while_loop(lambda c: c[0] < total, lambda c: trip(*c, chunk), c)

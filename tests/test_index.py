@@ -161,12 +161,15 @@ def test_clustered_overflowing_cells_small_chunks():
     _assert_same(cb, _memory(cb, pts), cg, mg, queries)
 
 
-def test_scan_rest_runs_for_the_queries_with_more_candidates_only():
+@pytest.mark.parametrize("levels", [1, 3])
+def test_scan_rest_runs_for_the_queries_with_more_candidates_only(levels):
     """The scan's second stage (queries with more than ``first_trips`` chunks of candidates,
-    gathered 16 at a time under vmap): a batch of dense-cluster and sparse queries, vmapped and
-    one by one, both exactly the brute-force sets."""
+    gathered 16 at a time under vmap; with several levels the first stage is one wide trip):
+    a batch of dense-cluster and sparse queries, vmapped and one by one, both exactly the
+    brute-force sets."""
     rng = np.random.default_rng(11)
-    cb, cg = _pair(index_chunk=8, max_neighbours=8)
+    cb, cg = _pair(index_chunk=8, max_neighbours=8, index_levels=levels)
+    assert len(gi.geometry(cg).levels) == levels and gi.first_trips(cg) > 1
     cluster = np.repeat(_uniform(rng, 2), 400, axis=0) \
         + rng.normal(0, 0.005, (800, 3)).astype(np.float32)
     cluster[:, 2] = np.round(cluster[:, 2])
