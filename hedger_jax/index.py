@@ -685,7 +685,11 @@ def _scan(config, geo: Geometry, index: GridIndex, head, z, lv, tab_start, tab_l
         n_best = jnp.sum(jnp.isfinite(best_d2).astype(jnp.int32))
 
         def append(best):
-            pos = jnp.where(ok, n_best + jnp.cumsum(ok.astype(jnp.int32)) - 1, k)
+            # Exclusive prefix count of ok as one small matrix product (exact in float32):
+            # XLA's cumsum (a reduce-window) cost 24 us per step for 16 vmapped seeds.
+            before = jnp.dot(ok.astype(jnp.float32), _strictly_upper(width),
+                             precision=jax.lax.Precision.HIGHEST).astype(jnp.int32)
+            pos = jnp.where(ok, n_best + before, k)
             return (best[0].at[pos].set(d2, mode="drop"),
                     best[1].at[pos].set(slot, mode="drop"))
 
@@ -719,6 +723,12 @@ def _scan(config, geo: Geometry, index: GridIndex, head, z, lv, tab_start, tab_l
     _, best_d2, best_idx = batch_cond(carry[0] < total, rest, lambda c: c, carry,
                                       compact=_REST_GROUP)
     return best_idx, best_d2
+
+
+@functools.lru_cache(maxsize=None)
+def _strictly_upper(n: int) -> np.ndarray:
+    """float32 (n, n) with 1 above the diagonal: x @ it = exclusive prefix sums of x."""
+    return np.triu(np.ones((n, n), np.float32), 1)
 
 
 def first_trips(config) -> int:
