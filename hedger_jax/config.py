@@ -74,7 +74,8 @@ class HedgerConfig:
     index of ``hedger_jax.index``: same neighbour sets) or "auto" (grid from
     ``AUTO_GRID_CAPACITY_LOW_DIM`` = 512 slots up for inputs of at most 4 dimensions, from
     ``AUTO_GRID_CAPACITY`` = 16,384 for more, unless the kernel is wide against the input
-    ranges: ``AUTO_GRID_MAX_FRACTION``); ``index_chunk`` candidates per step of the grid scan;
+    ranges: ``AUTO_GRID_MAX_FRACTION``); ``index_chunk`` candidates per step of the grid scan
+    (with several levels the first step is ``index.first_trips`` chunks wide);
     ``index_bounds`` the scaled range ((lo, hi) per dimension) the grid covers (default: [0, 1]
     per state dimension and the scaled action range; points outside are clamped to the border
     cells, never dropped); ``index_levels`` the number of grid levels (finer levels keep the
