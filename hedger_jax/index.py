@@ -699,23 +699,21 @@ def _scan(config, geo: Geometry, index: GridIndex, head, z, lv, tab_start, tab_l
 
     carry = (jnp.zeros((), jnp.int32), jnp.full((k,), jnp.inf, jnp.float32),
              jnp.zeros((k,), jnp.int32))
-    # Two stages: the first ``first_trips(config)`` trips for every query, then the rest for
-    # the queries that have more candidates. Under vmap a while loop runs as many trips as
-    # the query with the most candidates needs, for every query of the batch: at 3e5 slots
-    # mean 2.8 trips, max 6 (measured, 4096 uniform queries). The rest runs only for the
-    # queries that need it, ``_REST_GROUP`` at a time (``loops.batch_cond``'s ``compact``).
-    # Same candidates in the same order: bit-identical results.
-    first = first_trips(config) * chunk
-    if L > 1:
-        # Several levels: a query's rows at its level hold about _LEVEL_TARGET k to twice that
-        # many candidates, so the first stage is one wide trip (one top_k over k + first
-        # values instead of first_trips over k + chunk: batched selection 1.2x at 3e5 and 1e6,
-        # measured). One level (small memories): rows hold anything from 0 candidates up, so
-        # chunk-sized trips, stopping early.
-        carry = trip(*carry, first, fresh=True)
-    else:
-        carry = jax.lax.while_loop(lambda c: (c[0] < total) & (c[0] < first),
-                                   lambda c: trip(*c, chunk), carry)
+    if L == 1:
+        # One level (small memories): rows hold few candidates (1e4 uniform points: at most
+        # 43, one trip); one loop (one copy of the trip in the program: compile time).
+        _, best_d2, best_idx = jax.lax.while_loop(lambda c: c[0] < total,
+                                                  lambda c: trip(*c, chunk), carry)
+        return best_idx, best_d2
+    # Several levels: two stages. A query's rows at its level hold about _LEVEL_TARGET k to
+    # twice that many candidates, so the first stage is one wide trip (``first_trips`` chunks:
+    # one top_k instead of several, batched selection 1.2x at 3e5 and 1e6, measured), then
+    # only the queries with more candidates go on, ``_REST_GROUP`` at a time under vmap
+    # (``loops.batch_cond``'s ``compact``): a vmapped while loop runs as many trips as the
+    # query with the most candidates needs, for every query of the batch (3e5 slots, 4096
+    # uniform queries: mean 2.8 trips of 64, max 6). Same candidates in the same order:
+    # bit-identical results.
+    carry = trip(*carry, first_trips(config) * chunk, fresh=True)
 
     def rest(c):
         return jax.lax.while_loop(lambda c: c[0] < total, lambda c: trip(*c, chunk), c)

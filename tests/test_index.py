@@ -163,10 +163,11 @@ def test_clustered_overflowing_cells_small_chunks():
 
 @pytest.mark.parametrize("levels", [1, 3])
 def test_scan_rest_runs_for_the_queries_with_more_candidates_only(levels):
-    """The scan's second stage (queries with more than ``first_trips`` chunks of candidates,
-    gathered 16 at a time under vmap; with several levels the first stage is one wide trip):
-    a batch of dense-cluster and sparse queries, vmapped and one by one, both exactly the
-    brute-force sets."""
+    """The scan's batched paths: with several levels the second stage (queries with more
+    than ``first_trips`` chunks of candidates after one wide trip, gathered 16 at a time under
+    vmap); with one level the top_k of the queries whose candidates overflow k (16 at a time)
+    while the others append theirs. A batch of dense-cluster and sparse queries, vmapped and
+    one by one, both exactly the brute-force sets."""
     rng = np.random.default_rng(11)
     cb, cg = _pair(index_chunk=8, max_neighbours=8, index_levels=levels)
     assert len(gi.geometry(cg).levels) == levels and gi.first_trips(cg) > 1
