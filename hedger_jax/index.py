@@ -687,8 +687,12 @@ def _scan(config, geo: Geometry, index: GridIndex, head, z, lv, tab_start, tab_l
         def append(best):
             # Exclusive prefix count of ok as one small matrix product (exact in float32):
             # XLA's cumsum (a reduce-window) cost 24 us per step for 16 vmapped seeds.
-            before = jnp.dot(ok.astype(jnp.float32), _strictly_upper(width),
-                             precision=jax.lax.Precision.HIGHEST).astype(jnp.int32)
+            if width <= _MATMUL_PREFIX_MAX:
+                before = jnp.dot(ok.astype(jnp.float32), _strictly_upper(width),
+                                 precision=jax.lax.Precision.HIGHEST).astype(jnp.int32)
+            else:                     # a wide user chunk: no width^2 constant
+                okc = jax.lax.associative_scan(jnp.add, ok.astype(jnp.int32))
+                before = okc - ok.astype(jnp.int32)
             pos = jnp.where(ok, n_best + before, k)
             return (best[0].at[pos].set(d2, mode="drop"),
                     best[1].at[pos].set(slot, mode="drop"))
@@ -721,6 +725,10 @@ def _scan(config, geo: Geometry, index: GridIndex, head, z, lv, tab_start, tab_l
     _, best_d2, best_idx = batch_cond(carry[0] < total, rest, lambda c: c, carry,
                                       compact=_REST_GROUP)
     return best_idx, best_d2
+
+
+#: Widest chunk whose prefix count is a matrix product (a width^2 float32 constant).
+_MATMUL_PREFIX_MAX = 256
 
 
 @functools.lru_cache(maxsize=None)

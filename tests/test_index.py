@@ -197,6 +197,20 @@ def test_scan_rest_runs_for_the_queries_with_more_candidates_only(levels):
         np.testing.assert_array_equal(np.asarray(single.sqdist), batched.sqdist[i])
 
 
+def test_wide_user_chunk_one_level_matches_brute():
+    """A chunk wider than ``_MATMUL_PREFIX_MAX`` (its prefix count is a scan, not a matrix
+    product), with queries whose candidates fit in k and queries that overflow it."""
+    rng = np.random.default_rng(12)
+    cb, cg = _pair(index_chunk=gi._MATMUL_PREFIX_MAX + 44, max_neighbours=8, index_levels=1)
+    cluster = _uniform(rng, 1)[0] + rng.normal(0, 0.01, (300, 3)).astype(np.float32)
+    cluster[:, 2] = np.round(cluster[:, 2])
+    pts = np.concatenate([cluster, _uniform(rng, 500)])
+    queries = np.concatenate([cluster[:20], _uniform(rng, 20)])
+    a = _assert_same(cb, _memory(cb, pts), cg, _memory(cg, pts), queries)
+    counts = a.mask.sum(1)
+    assert counts.max() == 8 and counts.min() < 8      # overflowing and fitting queries
+
+
 def test_cell_borders_and_threshold_distance():
     """Points on cell borders and at exactly k_thresh (in float32) from the query."""
     cb, cg = _pair()
