@@ -41,8 +41,11 @@ Design (all shapes static, so everything jits and vmaps; N = capacity, d = dim, 
   when forced.
 * **Scan.** The query's candidates are the concatenation of its table rows, its recent-list
   rows and the brute-force writes; they are scanned in chunks of ``index_chunk`` by a
-  ``lax.while_loop`` keeping a running ``lax.top_k`` of the squared distances, so any
-  occupancy is exact -- a full or overflowing cell just costs more trips.
+  ``lax.while_loop`` keeping the k nearest so far (``lax.top_k``; with one level, candidates
+  that all fit are appended without it), so any occupancy is exact -- a full or
+  overflowing cell just costs more trips. With several levels the first trip is
+  ``first_trips`` chunks wide and only the queries with more candidates go on (under vmap,
+  16 at a time), so a batch does not run its slowest query's trips for every query.
 * **Ring buffer.** With ``full_policy="overwrite_oldest"`` a slot written since the last merge
   is masked out of the tables (its new point is in the recent list or the brute-force writes),
   and a recent-list entry is masked once its slot was written again, so no slot is ever
@@ -738,11 +741,12 @@ def _strictly_upper(n: int) -> np.ndarray:
 
 
 def first_trips(config) -> int:
-    """Trips of the grid scan made for every query of a vmapped batch before only those with
-    more candidates go on: enough for twice the candidates a finer level's rows hold when
-    that level is chosen (``_LEVEL_TARGET`` x k), so few queries go on (4096 uniform queries
-    at 1e5 / 3e5 / 1e6 uniform points: 2.1 % / 3.4 % / 0.15 %, measured; 2 or 4 trips were
-    slower at 3e5 and 1e6)."""
+    """Width, in chunks of ``index_chunk``, of the grid scan's first trip with several levels,
+    made for every query of a vmapped batch before only those with more candidates go on:
+    enough for twice the candidates a finer level's rows hold when that level is chosen
+    (``_LEVEL_TARGET`` x k), so few queries go on (4096 uniform queries at 1e5 / 3e5 / 1e6
+    uniform points: 2.1 % / 3.4 % / 0.15 %, measured; 2 or 4 chunks were slower at 3e5 and
+    1e6)."""
     k = min(config.max_neighbours, config.capacity)
     return max(1, -(-2 * _LEVEL_TARGET * k // int(config.index_chunk)))
 
