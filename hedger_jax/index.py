@@ -63,6 +63,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from hedger_jax.fusion import computed_once
 from hedger_jax.loops import batch_cond
 
 #: Largest number of grid cells per level (size of a ``starts`` table); see ``max_cells``.
@@ -441,10 +442,12 @@ def note_write(config, index: GridIndex, z: jax.Array, slot: jax.Array,
     # 5 ms per write at capacity 300,000), and a window with a traced start became a gather
     # and scatter of R columns per write under vmap.
     if R:
-        key = cell_keys(geo.levels[0], z)
+        # Computed once: fused into the O(R) passes below, XLA recomputed the key's ~30
+        # scalar operations for every one of the R entries (``hedger_jax.fusion``).
+        key = computed_once(cell_keys(geo.levels[0], z))
         pos = jnp.sum((rkeys <= key).astype(jnp.int32))      # after equal keys: write order
         j = jnp.arange(R, dtype=jnp.int32)
-        ins = did_write & (n_new < R)
+        ins = computed_once(did_write & (n_new < R))
 
         def shift(a, x):                 # a (..., R): insert x at pos, shift the rest right
             right = jnp.concatenate([a[..., :1], a[..., :-1]], axis=-1)
