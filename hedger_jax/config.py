@@ -81,7 +81,7 @@ class HedgerConfig:
     cells, never dropped); ``index_levels`` the number of grid levels (finer levels keep the
     search cost independent of the density; None: as many as the capacity makes useful);
     ``index_recent`` the length of the sorted list of points written since the last merge of
-    the grid tables (merges happen once half of it is used).
+    the grid tables (merges happen once three quarters of it are used: ``index.merge_threshold``).
 
     Numerics: ``ridge`` is a relative ridge added to the equilibrated normal equations;
     ``ivh_tol`` a relative tolerance on the hull test (so a stored point is inside its own hull

@@ -232,12 +232,12 @@ def refresh_index(config: HedgerConfig, memory: Memory, force: bool = False) -> 
 
     The agent calls it after every episode (phase 1's included), so before every evaluation.
     With the brute-force search there is no index and this is the identity. With the grid
-    index, the
-    points written since the last merge (searched through a sorted list of recent writes, and
-    beyond ``index_recent`` by brute force) are merged into the grid tables -- O(capacity +
-    cells) -- once half of the recent list is used, or always with ``force`` (static bool); a
-    memory without an index is indexed from scratch by a sort. The search is exact at any
-    time: refreshing only keeps it fast.
+    index, the points written since the last merge (searched through a sorted list of recent
+    writes, and beyond ``index_recent`` by brute force) are merged into the grid tables --
+    O(capacity + cells) -- once three quarters of the recent list are used
+    (``index.merge_threshold``), or always with ``force`` (static bool); a memory without an
+    index is indexed from scratch by a sort. The search is exact at any time: refreshing only
+    keeps it fast.
     """
     if not uses_index(config):
         return memory

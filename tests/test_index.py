@@ -426,7 +426,7 @@ def test_recent_list_overflow_and_saturation_stay_exact():
         assert int(mg.index.n_new) == min(n_writes, 120 if policy == "error" else 121)
         q = np.concatenate([_uniform(rng, 30), pts[-10:]])
         _assert_same(cb, mb, cg, mg, q)
-        merged = jax.jit(functools.partial(refresh_index, cg))(mg)   # >= R/2 pending: merges
+        merged = jax.jit(functools.partial(refresh_index, cg))(mg)   # >= 3R/4 pending: merges
         assert int(merged.index.n_new) == 0
         _assert_same(cb, mb, cg, merged, q)
 
@@ -434,13 +434,16 @@ def test_recent_list_overflow_and_saturation_stay_exact():
 def test_refresh_merges_lazily_and_force_always():
     rng = np.random.default_rng(10)
     cb, cg = _pair(capacity=300, index_recent=64)
-    pts = _uniform(rng, 40)
+    assert gi.merge_threshold(64) == 48
+    pts = _uniform(rng, 48)
     mg = _write_all(cg, pts[:20], np.zeros(20, np.float32))
-    lazy = refresh_index(cg, mg)                              # 20 < 64 / 2: nothing to do
+    lazy = refresh_index(cg, mg)                              # 20 < 3/4 of 64: nothing to do
     assert int(lazy.index.n_new) == 20
     forced = refresh_index(cg, mg, force=True)
     assert int(forced.index.n_new) == 0
-    assert int(refresh_index(cg, _write_all(cg, pts, np.zeros(40, np.float32))).index.n_new) == 0
+    zero = np.zeros(48, np.float32)
+    assert int(refresh_index(cg, _write_all(cg, pts[:47], zero[:47])).index.n_new) == 47
+    assert int(refresh_index(cg, _write_all(cg, pts, zero)).index.n_new) == 0     # 48: merged
     mb = _write_all(cb, pts[:20], np.zeros(20, np.float32))
     for m in (lazy, forced):
         _assert_same(cb, mb, cg, m, _uniform(rng, 20))
