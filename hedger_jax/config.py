@@ -81,7 +81,8 @@ class HedgerConfig:
     cells, never dropped); ``index_levels`` the number of grid levels (finer levels keep the
     search cost independent of the density; None: as many as the capacity makes useful);
     ``index_recent`` the length of the sorted list of points written since the last merge of
-    the grid tables (merges happen once three quarters of it are used: ``index.merge_threshold``).
+    the grid tables (merges happen once three quarters of it are used: ``index.merge_threshold``;
+    None: chosen from the capacity, ``index.recent_length``).
 
     Numerics: ``ridge`` is a relative ridge added to the equilibrated normal equations;
     ``ivh_tol`` a relative tolerance on the hull test (so a stored point is inside its own hull
@@ -116,7 +117,7 @@ class HedgerConfig:
     index_chunk: int = 64
     index_bounds: Optional[Tuple[Tuple[float, float], ...]] = None
     index_levels: Optional[int] = None
-    index_recent: int = 1024
+    index_recent: Optional[int] = None
 
     def __post_init__(self):
         set_ = lambda name, value: object.__setattr__(self, name, value)  # noqa: E731
@@ -211,10 +212,12 @@ class HedgerConfig:
                 raise ValueError(f"index_levels: must be None or an integer >= 1, "
                                  f"got {self.index_levels!r}")
             set_("index_levels", int(self.index_levels))
-        if isinstance(self.index_recent, bool) or int(self.index_recent) != self.index_recent \
-                or int(self.index_recent) < 0:
-            raise ValueError(f"index_recent: must be an integer >= 0, got {self.index_recent!r}")
-        set_("index_recent", int(self.index_recent))
+        if self.index_recent is not None:
+            if isinstance(self.index_recent, bool) \
+                    or int(self.index_recent) != self.index_recent or int(self.index_recent) < 0:
+                raise ValueError(f"index_recent: must be None or an integer >= 0, "
+                                 f"got {self.index_recent!r}")
+            set_("index_recent", int(self.index_recent))
         if self.index_bounds is not None:
             try:
                 bounds = tuple((float(lo), float(hi)) for lo, hi in self.index_bounds)

@@ -472,3 +472,34 @@ def test_scanned_fraction_bounds_what_a_query_reads():
         shares[bw] = float(jnp.mean(jax.jit(jax.vmap(count))(queries))) / 20_000
         assert 0 < shares[bw] <= gi.scanned_fraction(cfg)
     assert shares[0.1] > 10 * shares[0.015]
+
+
+def test_recent_length_grows_with_the_capacity_and_follows_the_config():
+    auto = {n: gi.recent_length(_cfg("grid", capacity=n))
+            for n in (500, 20_000, 100_000, 300_000, 1_000_000, 4_000_000)}
+    assert auto == {500: 500, 20_000: 1024, 100_000: 1024, 300_000: 2048, 1_000_000: 4096,
+                    4_000_000: 4096}
+    assert gi.recent_length(_cfg("grid", capacity=1_000_000, index_recent=256)) == 256
+    assert gi.recent_length(_cfg("grid", capacity=100, index_recent=256)) == 100
+    assert gi.geometry(_cfg("grid", capacity=300_000)).recent == 2048
+    for bad in (-1, 2.5, True):
+        with pytest.raises(ValueError, match="index_recent"):
+            _cfg("grid", index_recent=bad)
+
+
+def test_a_recent_list_longer_than_the_merge_window_merges_in_one_pass_exactly():
+    """R > _MERGE_WINDOW: the window is R (``index.merge_window``), so 3R/4 pending writes are
+    merged by one pass; the tables then answer as brute force does."""
+    rng = np.random.default_rng(12)
+    R = 2 * gi._MERGE_WINDOW
+    for policy in ("error", "overwrite_oldest"):
+        cb, cg = _pair(capacity=4 * gi._MERGE_WINDOW, full_policy=policy, index_recent=R,
+                       max_neighbours=8, bandwidth=0.03)
+        assert gi.merge_window(gi.geometry(cg), cg.capacity) == R
+        n = gi.merge_threshold(R) + 5
+        pts, vals = _uniform(rng, n), rng.normal(size=n).astype(np.float32)
+        mb, mg = _write_all(cb, pts, vals, width=n), _write_all(cg, pts, vals, width=n)
+        merged = jax.jit(functools.partial(refresh_index, cg))(mg)
+        assert int(mg.index.n_new) == n and int(merged.index.n_new) == 0
+        q = np.concatenate([_uniform(rng, 40), pts[-10:], pts[:10]])
+        _assert_same(cb, mb, cg, merged, q)
