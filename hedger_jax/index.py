@@ -814,6 +814,9 @@ def select(config, points: jax.Array, head: jax.Array, index: GridIndex, z: jax.
     n = points.shape[-1]
     k = min(config.max_neighbours, n)
     r2 = jnp.float32(config.k_thresh) ** 2
+    # The query once (hedger_jax.fusion): its producers (scaling an observation sliced from an
+    # episode) were recomputed inside every row and table fusion (training 1.03x, measured).
+    z = computed_once(z)
     first, last, live = level_rows(geo, z)
     if geo.recent:
         rec_start, rec_len = _recent_segments(geo, index, first[0], last[0], live[0])
