@@ -34,10 +34,11 @@ Design (all shapes static, so everything jits and vmaps; N = capacity, d = dim, 
 * **Tables.** Per level: the memory slots sorted by cell key, a copy of their points in that
   order, their keys, and ``starts``: the first sorted position of every cell. Build: a sort.
 * **Recent writes.** Points written since the last merge are not in the tables. The first
-  ``index_recent`` (R) of them are kept in a list sorted by level-0 key (an O(R) insertion per
-  write); a query finds the parts of its level-0 rows in that list by binary search. Writes
-  beyond R are scanned by brute force (exact, slower). ``refresh`` merges the writes into the
-  tables -- O(N + cells) per level, so only once R / 2 have accumulated (a few episodes) or
+  R of them (``recent_length``: ``index_recent``, or 1,024-4,096 growing with the capacity)
+  are kept in a list sorted by level-0 key (an O(R) insertion per write); a query finds the
+  parts of its level-0 rows in that list by binary search. Writes beyond R are scanned by
+  brute force (exact, slower). ``refresh`` merges the writes into the tables -- O(N + cells)
+  per level, so only once 3R / 4 have accumulated (``merge_threshold``: a few episodes) or
   when forced.
 * **Scan.** The query's candidates are the concatenation of its table rows, its recent-list
   rows and the brute-force writes; they are scanned in chunks of ``index_chunk`` by a
@@ -79,6 +80,24 @@ _REST_GROUP = 16
 _FINE = 4
 #: Points merged into the tables per O(N) pass of ``refresh``.
 _MERGE_WINDOW = 1024
+#: Largest number of cells along one dimension (keeps the coordinate round-off << margin).
+_MAX_PER_DIM = 4096
+#: Largest number of key buckets of the recent list's lookup table (an insertion costs
+#: O(buckets)).
+_MAX_BUCKETS = 2048
+#: Ratio of the radii of consecutive levels.
+_LEVEL_RATIO = math.sqrt(2.0)
+#: A finer level is used for a query when its rows hold at least this many times k points
+#: (then the k nearest lie within its radius with overwhelming probability for any smooth
+#: density: the radius ball fills about half of the rows' box in two dimensions; measured on
+#: uniform data at 3e5 and 1e6 points: 0 and 0.02 % of queries rescan at level 0).
+_LEVEL_TARGET = 3
+#: The auto level count adds a level while a full memory of uniformly spread points would
+#: hold at least this many times k points in a query's rows at that level. (2 gave mountain
+#: car 6 levels at 1e6 slots; 5 were faster both to train, paired 1.14x with the merges every
+#: level costs, and to query, 1.05x for 4096 batched queries; 300k keeps 4: 3 traded 1.05x
+#: training for 0.97x queries. Measured, 2-core CPU.)
+_LEVEL_ADD = 2.5
 
 
 def recent_length(config) -> int:
@@ -108,7 +127,7 @@ def merge_threshold(recent: int) -> int:
     """Pending writes from which ``refresh`` merges: 3/4 of the recent list (at least 1).
 
     Every merge pass costs O(N) whatever the number of points it merges (up to
-    ``_MERGE_WINDOW``), and refreshes happen between episodes, so the more writes a merge takes
+    ``merge_window``), and refreshes happen between episodes, so the more writes a merge takes
     the cheaper each one is: at 3/4 of a 1,024-entry list a merge takes ~770-970 writes of
     200-step episodes instead of ~510-710 at one half (training paired 1.08x at 3e5 slots,
     1.13x at 1e6, neutral at 2e4; measured). The last quarter is the headroom for the episode
@@ -116,24 +135,6 @@ def merge_threshold(recent: int) -> int:
     after it) are still found, by a linear scan of them, but cost every query until the merge.
     """
     return max(3 * recent // 4, 1)
-#: Largest number of cells along one dimension (keeps the coordinate round-off << margin).
-_MAX_PER_DIM = 4096
-#: Largest number of key buckets of the recent list's lookup table (an insertion costs
-#: O(buckets)).
-_MAX_BUCKETS = 2048
-#: Ratio of the radii of consecutive levels.
-_LEVEL_RATIO = math.sqrt(2.0)
-#: A finer level is used for a query when its rows hold at least this many times k points
-#: (then the k nearest lie within its radius with overwhelming probability for any smooth
-#: density: the radius ball fills about half of the rows' box in two dimensions; measured on
-#: uniform data at 3e5 and 1e6 points: 0 and 0.02 % of queries rescan at level 0).
-_LEVEL_TARGET = 3
-#: The auto level count adds a level while a full memory of uniformly spread points would
-#: hold at least this many times k points in a query's rows at that level. (2 gave mountain
-#: car 6 levels at 1e6 slots; 5 were faster both to train, paired 1.14x with the merges every
-#: level costs, and to query, 1.05x for 4096 batched queries; 300k keeps 4: 3 traded 1.05x
-#: training for 0.97x queries. Measured, 2-core CPU.)
-_LEVEL_ADD = 2.5
 
 
 class Level(NamedTuple):
