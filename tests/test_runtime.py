@@ -3,14 +3,14 @@ import os
 import subprocess
 import sys
 
-from hedger_jax.runtime import (NO_YNN_REDUCE_FLAG, OPT_OUT_VARIABLE, SAFE_CPU_FLAG,
-                                apply_safe_cpu_flags, cpu_flags)
+from hedger_jax.runtime import (LEGACY_EMITTERS_FLAG, NO_YNN_REDUCE_FLAG, OPT_OUT_VARIABLE,
+                                SAFE_CPU_FLAG, apply_safe_cpu_flags, cpu_flags)
 
 V010, V011 = (0, 10), (0, 11)
 
 
 def test_flags_depend_on_the_jaxlib_version():
-    assert cpu_flags(V010) == [SAFE_CPU_FLAG, NO_YNN_REDUCE_FLAG]
+    assert cpu_flags(V010) == [SAFE_CPU_FLAG, NO_YNN_REDUCE_FLAG, LEGACY_EMITTERS_FLAG]
     # An unknown XLA flag aborts the process: only add it where it is known to exist.
     assert cpu_flags(V011) == [SAFE_CPU_FLAG]
     assert cpu_flags((0, 4)) == [SAFE_CPU_FLAG]
@@ -19,9 +19,10 @@ def test_flags_depend_on_the_jaxlib_version():
 def test_adds_flags_to_empty_environment_once():
     env = {}
     assert apply_safe_cpu_flags(env, V010) is True
-    assert env["XLA_FLAGS"] == f"{SAFE_CPU_FLAG} {NO_YNN_REDUCE_FLAG}"
+    want = f"{SAFE_CPU_FLAG} {NO_YNN_REDUCE_FLAG} {LEGACY_EMITTERS_FLAG}"
+    assert env["XLA_FLAGS"] == want
     assert apply_safe_cpu_flags(env, V010) is False          # idempotent
-    assert env["XLA_FLAGS"] == f"{SAFE_CPU_FLAG} {NO_YNN_REDUCE_FLAG}"
+    assert env["XLA_FLAGS"] == want
     env = {}
     assert apply_safe_cpu_flags(env, V011) is True
     assert env["XLA_FLAGS"] == SAFE_CPU_FLAG
@@ -31,7 +32,8 @@ def test_keeps_existing_flags():
     env = {"XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
     apply_safe_cpu_flags(env, V010)
     assert env["XLA_FLAGS"].split() == ["--xla_force_host_platform_device_count=2",
-                                        SAFE_CPU_FLAG, NO_YNN_REDUCE_FLAG]
+                                        SAFE_CPU_FLAG, NO_YNN_REDUCE_FLAG,
+                                        LEGACY_EMITTERS_FLAG]
 
 
 def test_user_setting_of_the_same_flag_wins():
@@ -41,7 +43,12 @@ def test_user_setting_of_the_same_flag_wins():
     env = {"XLA_FLAGS": "--xla_cpu_experimental_ynn_fusion_type=+LIBRARY_FUSION_TYPE_DOT"}
     assert apply_safe_cpu_flags(env, V010) is True
     assert env["XLA_FLAGS"].split() == ["--xla_cpu_experimental_ynn_fusion_type="
-                                        "+LIBRARY_FUSION_TYPE_DOT", SAFE_CPU_FLAG]
+                                        "+LIBRARY_FUSION_TYPE_DOT", SAFE_CPU_FLAG,
+                                        LEGACY_EMITTERS_FLAG]
+    env = {"XLA_FLAGS": "--xla_cpu_use_fusion_emitters=true"}         # the user's choice wins
+    assert apply_safe_cpu_flags(env, V010) is True
+    assert env["XLA_FLAGS"].split() == ["--xla_cpu_use_fusion_emitters=true", SAFE_CPU_FLAG,
+                                        NO_YNN_REDUCE_FLAG]
 
 
 def test_opt_out_variable():
