@@ -157,6 +157,10 @@ def select_neighbours(config: HedgerConfig, memory: Memory, z: jax.Array) -> Nei
     return _pad_neighbours(config, idx, d2_sel, mask)
 
 
+#: Padding keys of K's canonical order end here: above every slot (int32 slot indices).
+_CANON_PAD = int(np.iinfo(np.int32).max)
+
+
 def _pad_neighbours(config: HedgerConfig, idx, d2_sel, mask) -> Neighbours:
     """Pad to ``max_neighbours`` and put K in a canonical order (real neighbours by slot, then
     padding), so that every search method gives bit-identical fits (float32 sums depend on
@@ -167,16 +171,15 @@ def _pad_neighbours(config: HedgerConfig, idx, d2_sel, mask) -> Neighbours:
         idx = jnp.concatenate([idx, jnp.zeros((pad,), idx.dtype)])
         d2_sel = jnp.concatenate([d2_sel, jnp.full((pad,), jnp.inf, d2_sel.dtype)])
         mask = jnp.concatenate([mask, jnp.zeros((pad,), bool)])
-    big = jnp.iinfo(jnp.int32).max
-    key = jnp.where(mask, idx.astype(jnp.int32), big)
-    # Stable rank of every key (a k x k comparison count: fuses and vectorises, unlike a
-    # sort call per query on CPU); the ranks are a permutation, applied by one scatter.
-    j = jnp.arange(key.shape[-1])
-    before = (key[None, :] < key[:, None]) | ((key[None, :] == key[:, None])
-                                              & (j[None, :] < j[:, None]))
-    rank = jnp.sum(before, axis=1)
-    idx, d2_sel, mask = (jnp.zeros_like(a).at[rank].set(a, unique_indices=True)
-                         for a in (idx, d2_sel, mask))
+    # Distinct keys: a real neighbour's slot (slots in K are distinct), else one of the k
+    # largest int32 by position (padding after every real neighbour, in its own order).
+    j = jnp.arange(idx.shape[-1], dtype=jnp.int32)
+    key = jnp.where(mask, idx.astype(jnp.int32), _CANON_PAD - idx.shape[-1] + j)
+    # Rank of every key (a k x k comparison count: fuses and vectorises, unlike a sort call
+    # per query on CPU); the ranks are a permutation, applied by one scatter.
+    rank = jnp.sum((key[None, :] < key[:, None]).astype(jnp.int32), axis=1)
+    idx, d2_sel = (jnp.zeros_like(a).at[rank].set(a, unique_indices=True) for a in (idx, d2_sel))
+    mask = j < jnp.sum(mask.astype(jnp.int32))             # the real neighbours come first
     return Neighbours(indices=idx.astype(jnp.int32), sqdist=jnp.where(mask, d2_sel, 0.0),
                       mask=mask)
 
