@@ -16,8 +16,10 @@ Writes ``DIR/benchmark.md`` (tables) and ``DIR/benchmark.json`` (default DIR:
   compile  jit compile time of a full ``make_train(...).train``;
   and the peak resident memory (``resource.getrusage`` maxrss) after each section.
 
-Data: mountain-car-like scaled inputs (state uniform in [0, 1]^2, action in {-1, 0, 1} or
-[-1, 1]), the library's default bandwidth 0.015 (k_thresh 0.032) and max_neighbours 32.
+Data: mountain-car-like scaled inputs (state uniform in [0, 1]^2, action in {-1, 0, 1} or,
+continuous, uniform in [-1, 1] times ``CONTINUOUS_ACTION_SCALE``), the library's default
+bandwidth 0.015 (k_thresh 0.032) and max_neighbours 32: the settings the experiments and
+``Hedger``'s presets use for mountain car.
 """
 from __future__ import annotations
 
@@ -86,16 +88,27 @@ def timeit(fn, min_time=0.5, max_reps=50):
             return dt / n, (time.process_time() - c0) / n
 
 
+#: Scaled action = action x this for continuous mountain car: the experiments' and the
+#: ``Hedger`` preset's setting (``experiments.figures.MOUNTAIN_CAR_CONTINUOUS``,
+#: ``hedger_jax.learner.ENV_PRESETS``). (Benchmarks before 2026-12-02 used raw actions,
+#: 1.0, which no shipped configuration uses: 10x sparser neighbourhoods in the action.)
+CONTINUOUS_ACTION_SCALE = 0.1
+
+
 def mc_config(capacity, kind, continuous=False, **kw):
     env = MountainCar(continuous=continuous)
+    if continuous:
+        kw.setdefault("action_scale", CONTINUOUS_ACTION_SCALE)
     return HedgerConfig.for_env(env, capacity=capacity, neighbour_index=kind, **kw)
 
 
-def fake_points(n, rng, continuous=False):
-    """(n, 3) scaled mountain-car-like inputs and small positive values."""
+def fake_points(n, rng, continuous=False, action_scale=CONTINUOUS_ACTION_SCALE):
+    """(n, 3) scaled mountain-car-like inputs and small positive values (continuous actions
+    uniform in [-1, 1], scaled by ``action_scale`` as ``mc_config`` does)."""
     z = np.empty((n, 3), np.float32)
     z[:, :2] = rng.uniform(0, 1, (n, 2))
-    z[:, 2] = rng.uniform(-1, 1, n) if continuous else rng.integers(-1, 2, n)
+    z[:, 2] = (rng.uniform(-1, 1, n) * action_scale) if continuous \
+        else rng.integers(-1, 2, n)
     return z, rng.uniform(0, 1e-2, n).astype(np.float32)
 
 
@@ -344,7 +357,7 @@ def bench_compile(results):
     run = RunConfig(n_blocks=2, episodes_per_block=2, eval_episodes=16)
     for continuous, kind in ((False, "brute"), (False, "grid"), (True, "brute"), (True, "grid")):
         env = MountainCar(continuous=continuous)
-        cfg = HedgerConfig.for_env(env, capacity=20_000, neighbour_index=kind)
+        cfg = mc_config(20_000, kind, continuous)
         train = make_train(env, cfg, run).train
         t0 = time.perf_counter()
         lowered = jax.jit(train).lower(jax.random.PRNGKey(0))

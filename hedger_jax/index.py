@@ -92,12 +92,29 @@ _LEVEL_RATIO = math.sqrt(2.0)
 #: density: the radius ball fills about half of the rows' box in two dimensions; measured on
 #: uniform data at 3e5 and 1e6 points: 0 and 0.02 % of queries rescan at level 0).
 _LEVEL_TARGET = 3
+#: With more than two uniform (not one-cell-per-value) dimensions the targets grow by this
+#: factor per extra dimension (``level_target``): the radius ball fills a smaller part of the
+#: rows' box (3 dimensions: ~0.21 of it instead of ~0.47), so at 3k a finer level's k nearest
+#: often lay outside its radius and the query was searched again at level 0. Measured
+#: (continuous mountain car, action_scale 0.1, 2e5 uniform points in 3e5 slots): at 3k, 9.8 %
+#: of queries were rescanned; training at 4k / 4.5k / 5k / 6k / 7k (with ``loops``' small-batch
+#: groups) 2.17 / 2.2 / 2.1 / 1.7 / 1.3x faster than at 3k -- a coarser level (2.8x the
+#: candidates) costs more than a rare rescan.
+_TARGET_GROWTH = 1.5
 #: The auto level count adds a level while a full memory of uniformly spread points would
 #: hold at least this many times k points in a query's rows at that level. (2 gave mountain
 #: car 6 levels at 1e6 slots; 5 were faster both to train, paired 1.14x with the merges every
 #: level costs, and to query, 1.05x for 4096 batched queries; 300k keeps 4: 3 traded 1.05x
 #: training for 0.97x queries. Measured, 2-core CPU.)
 _LEVEL_ADD = 2.5
+
+
+def level_target(n_uniform: int) -> float:
+    """Points (in units of k) that a finer level's rows must hold for a query to use that
+    level: ``_LEVEL_TARGET``, times ``_TARGET_GROWTH`` per uniform dimension beyond two.
+    The auto level count (``_LEVEL_ADD``) scales alike (a level whose rows would rarely reach
+    the target would only cost merges)."""
+    return _LEVEL_TARGET * _TARGET_GROWTH ** max(int(n_uniform) - 2, 0)
 
 
 def recent_length(config) -> int:
@@ -163,13 +180,14 @@ class Geometry(NamedTuple):
     """levels: the levels, coarsest (radius k_thresh) first; n_starts: total length of the
     concatenated ``starts`` tables; recent: R, the length of the recent-write list; bucket:
     level-0 keys per bucket of the recent list's lookup table, n_buckets: its number of
-    buckets (at most ``_MAX_BUCKETS``)."""
+    buckets (at most ``_MAX_BUCKETS``); target: ``level_target`` of the uniform dimensions."""
 
     levels: Tuple[Level, ...]
     n_starts: int
     recent: int
     bucket: int
     n_buckets: int
+    target: float
 
 
 class GridIndex(NamedTuple):
@@ -301,13 +319,15 @@ def geometry(config) -> Geometry:
 
     ``config.index_levels`` levels, or (None) as many as are useful for the capacity: a finer
     level is added while a memory full of uniformly spread points would hold at least
-    ``_LEVEL_ADD`` x ``max_neighbours`` points in a query's rows at that level (at least one).
+    ``_LEVEL_ADD`` x ``max_neighbours`` points in a query's rows at that level (at least one;
+    more with more than two uniform dimensions, see ``level_target``).
     """
     bounds = default_bounds(config)
     values = _value_cells(config, config.k_thresh * (1.0 + _SIDE_MARGIN))
     if _make_level(config, config.k_thresh, bounds, values, 0) is None:
         values = [None] * config.dim        # too many value cells for the budget: uniform
     n_values = int(np.prod([len(v) + 1 for v in values if v is not None] or [1]))
+    target = level_target(sum(v is None for v in values))
     wanted = getattr(config, "index_levels", None)
     levels, start = [], 0
     for lv in range(wanted or 32):
@@ -316,7 +336,7 @@ def geometry(config) -> Geometry:
             break
         if wanted is None and levels:
             expected = config.capacity / n_values * _rows_volume(level, bounds)
-            if expected < _LEVEL_ADD * config.max_neighbours:
+            if expected < _LEVEL_ADD * target / _LEVEL_TARGET * config.max_neighbours:
                 break
         levels.append(level)
         start += level.n_cells + 1
@@ -324,7 +344,7 @@ def geometry(config) -> Geometry:
     bucket = -(-n0 // _MAX_BUCKETS)
     return Geometry(levels=tuple(levels), n_starts=start,
                     recent=recent_length(config), bucket=bucket,
-                    n_buckets=-(-n0 // bucket))
+                    n_buckets=-(-n0 // bucket), target=float(target))
 
 
 def scanned_fraction(config) -> float:
@@ -628,7 +648,7 @@ def refresh(config, index: GridIndex, points: jax.Array, head: jax.Array, size: 
 
 # ------------------------------------------------------------------------------ query
 def _choose_level(geo: Geometry, index: GridIndex, first, last, live, k: int):
-    """The finest level whose rows hold >= _LEVEL_TARGET * k indexed points (else 0), and its
+    """The finest level whose rows hold >= geo.target * k indexed points (else 0), and its
     table segments: (level (), positions (R,), lengths (R,)). first/last/live: ``level_rows``."""
     starts = jnp.asarray([lv.start for lv in geo.levels], jnp.int32)[:, None]
     s0 = index.starts[starts + first]
@@ -638,7 +658,7 @@ def _choose_level(geo: Geometry, index: GridIndex, first, last, live, k: int):
     counts = jnp.sum(length, axis=1)
     lv = jnp.zeros((), jnp.int32)
     for i in range(1, len(geo.levels)):
-        lv = jnp.where(counts[i] >= _LEVEL_TARGET * k, i, lv)
+        lv = jnp.where(counts[i] >= int(math.ceil(geo.target * k)), i, lv)
     return lv, s0[lv], length[lv]
 
 
@@ -757,7 +777,7 @@ def _scan(config, geo: Geometry, index: GridIndex, head, z, lv, tab_start, tab_l
         _, best_d2, best_idx = jax.lax.while_loop(lambda c: c[0] < total,
                                                   lambda c: trip(*c, chunk), carry)
         return best_idx, best_d2
-    # Several levels: two stages. A query's rows at its level hold about _LEVEL_TARGET k to
+    # Several levels: two stages. A query's rows at its level hold about geo.target k to
     # twice that many candidates, so the first stage is one wide trip (``first_trips`` chunks:
     # one top_k instead of several, batched selection 1.2x at 3e5 and 1e6, measured), then
     # only the queries with more candidates go on, ``_REST_GROUP`` at a time under vmap
@@ -789,11 +809,11 @@ def first_trips(config) -> int:
     """Width, in chunks of ``index_chunk``, of the grid scan's first trip with several levels,
     made for every query of a vmapped batch before only those with more candidates go on:
     enough for twice the candidates a finer level's rows hold when that level is chosen
-    (``_LEVEL_TARGET`` x k), so few queries go on (4096 uniform queries at 1e5 / 3e5 / 1e6
+    (``level_target`` x k), so few queries go on (4096 uniform queries at 1e5 / 3e5 / 1e6
     uniform points: 2.1 % / 3.4 % / 0.15 %, measured; 2 or 4 chunks were slower at 3e5 and
     1e6)."""
     k = min(config.max_neighbours, config.capacity)
-    return max(1, -(-2 * _LEVEL_TARGET * k // int(config.index_chunk)))
+    return max(1, int(math.ceil(2 * geometry(config).target * k / int(config.index_chunk))))
 
 
 def _sqdist(points: jax.Array, z: jax.Array) -> jax.Array:

@@ -503,3 +503,57 @@ def test_a_recent_list_longer_than_the_merge_window_merges_in_one_pass_exactly()
         assert int(mg.index.n_new) == n and int(merged.index.n_new) == 0
         q = np.concatenate([_uniform(rng, 40), pts[-10:], pts[:10]])
         _assert_same(cb, mb, cg, merged, q)
+
+
+def test_level_target_grows_with_the_uniform_dimensions():
+    """A finer level is used when its rows hold ``level_target`` x k points: 3k with two
+    uniform dimensions (discrete actions get one cell per value), 1.5 times more per extra
+    uniform dimension (the radius ball fills less of the rows' box); the first wide trip of
+    the scan is sized from it."""
+    assert gi.level_target(1) == gi.level_target(2) == 3
+    assert gi.level_target(3) == 4.5 and gi.level_target(4) == 6.75
+    disc = _cfg("grid", capacity=10 ** 5, bandwidth=0.015)
+    cont = HedgerConfig(2, 1, action_low=(-1.0,), action_high=(1.0,), capacity=10 ** 5,
+                        bandwidth=0.015, max_neighbours=16, neighbour_index="grid")
+    assert gi.geometry(disc).target == 3 and gi.geometry(cont).target == 4.5
+    assert gi.first_trips(disc) * disc.index_chunk >= 2 * 3 * 16
+    assert gi.first_trips(cont) * cont.index_chunk >= 2 * 4.5 * 16
+
+
+def test_continuous_levels_small_batches_of_candidate_actions_match_brute():
+    """Three uniform dimensions (continuous actions) with several levels, queried as the
+    greedy search does: 11 candidate actions per state, vmapped (batches smaller than the
+    rescan/scan groups run in groups of 4, ``loops._SMALL_GROUP``), on uniform points plus a
+    dense cluster. Some queries choose a finer level whose k nearest are not all within its
+    radius (searched again at level 0); every set is exactly brute force's."""
+    rng = np.random.default_rng(5)
+    kw = dict(action_low=(-0.2,), action_high=(0.2,), capacity=6000, bandwidth=0.05,
+              max_neighbours=8, index_levels=3, index_chunk=16)
+    cb = HedgerConfig(2, 1, neighbour_index="brute", **kw)
+    cg = HedgerConfig(2, 1, neighbour_index="grid", **kw)
+    pts = np.concatenate([rng.uniform([0, 0, -0.2], [1, 1, 0.2], (5000, 3)),
+                          rng.normal([0.5, 0.5, 0.0], 0.01, (800, 3))]).astype(np.float32)
+    mb, mg = _memory(cb, pts), _memory(cg, pts)
+    states = np.concatenate([rng.uniform(0, 1, (14, 2)), [[0.5, 0.5], [0.505, 0.49]]])
+    acts = np.linspace(-0.2, 0.2, 11)
+    q = np.concatenate([np.repeat(states, 11, 0), np.tile(acts, len(states))[:, None]],
+                       1).astype(np.float32)
+    geo = gi.geometry(cg)
+
+    @jax.jit
+    @jax.vmap
+    def level(z):
+        first, last, live = gi.level_rows(geo, z)
+        return gi._choose_level(geo, mg.index, first, last, live, 8)[0]
+
+    lv = np.asarray(level(jnp.asarray(q)))
+    radius = np.array([x.radius for x in geo.levels])[lv]
+    d2 = np.sum((pts[None].astype(np.float64) - q[:, None]) ** 2, -1)
+    rescanned = (lv > 0) & (np.sum(d2 <= radius[:, None] ** 2, 1) < 8)
+    assert np.all(np.bincount(lv, minlength=3) > 10) and rescanned.sum() > 5
+    _assert_same(cb, mb, cg, mg, q)
+    per_state = jax.jit(jax.vmap(jax.vmap(lambda z: select_neighbours(cg, mg, z))))(
+        jnp.asarray(q.reshape(len(states), 11, 3)))
+    flat = jax.device_get(_select_fn(cg)(mg, jnp.asarray(q)))
+    np.testing.assert_array_equal(np.asarray(per_state.indices).reshape(-1, 8), flat.indices)
+    np.testing.assert_array_equal(np.asarray(per_state.mask).reshape(-1, 8), flat.mask)

@@ -172,3 +172,26 @@ def test_batch_cond_compact_runs_the_branch_for_the_needing_members_only():
     p[[0, 1, 3, 9]] = True                # 6 members: two groups
     np.testing.assert_array_equal(g(jnp.asarray(p), xs), np.where(p, xs + 100.0, xs))
     assert seen == [4, 4]
+
+
+def test_batch_cond_compact_small_batches_run_in_groups_of_four():
+    """A batch no larger than G (e.g. 11 candidate actions, G = 16) runs the needing members
+    in groups of min(G, 4); a batch of at most 4 runs whole (one call for every member)."""
+    seen = []
+
+    def counting(v):
+        def cb(a):
+            seen.append(np.asarray(a).shape[0])
+            return np.asarray(a) + 100.0
+        return jax.pure_callback(cb, jax.ShapeDtypeStruct(v.shape, v.dtype), v,
+                                 vmap_method="expand_dims")
+
+    g = jax.jit(jax.vmap(lambda p, x: batch_cond(p, counting, lambda v: v, x, compact=16)))
+    for n, members, calls in ((11, [], []), (11, [3], [4]), (11, [0, 5, 9, 10, 2], [4, 4]),
+                              (4, [1], [4]), (3, [0, 2], [3]), (3, [], [])):
+        seen.clear()
+        p = np.zeros(n, bool)
+        p[members] = True
+        xs = jnp.arange(float(n))
+        np.testing.assert_array_equal(g(jnp.asarray(p), xs), np.where(p, xs + 100.0, xs))
+        assert seen == calls, (n, members, seen)
