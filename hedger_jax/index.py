@@ -97,8 +97,8 @@ _LEVEL_TARGET = 3
 #: rows' box (3 dimensions: ~0.21 of it instead of ~0.47), so at 3k a finer level's k nearest
 #: often lay outside its radius and the query was searched again at level 0. Measured
 #: (continuous mountain car, action_scale 0.1, 2e5 uniform points in 3e5 slots): at 3k, 9.8 %
-#: of queries were rescanned; training at 4k / 4.5k / 5k / 6k / 7k (with ``loops``' small-batch
-#: groups) 2.17 / 2.2 / 2.1 / 1.7 / 1.3x faster than at 3k -- a coarser level (2.8x the
+#: of queries were rescanned; training at 4k / 5k / 6k (with ``loops``' small-batch groups)
+#: 2.17 / 2.08 / 1.69x faster than at 3k, 4.5k within 3 % of 4k -- a coarser level (2.8x the
 #: candidates) costs more than a rare rescan.
 _TARGET_GROWTH = 1.5
 #: The auto level count adds a level while a full memory of uniformly spread points would
