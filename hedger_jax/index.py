@@ -112,8 +112,9 @@ _LEVEL_ADD = 2.5
 def level_target(n_uniform: int) -> float:
     """Points (in units of k) that a finer level's rows must hold for a query to use that
     level: ``_LEVEL_TARGET``, times ``_TARGET_GROWTH`` per uniform dimension beyond two.
-    The auto level count (``_LEVEL_ADD``) scales alike (a level whose rows would rarely reach
-    the target would only cost merges)."""
+    The auto level count (``_LEVEL_ADD``) does not scale with it: continuous mountain car at
+    1e5 slots, a level whose rows reach the target only where the memory is denser than
+    average, kept 1.08x faster training than the old code; dropping it, 0.78x (paired)."""
     return _LEVEL_TARGET * _TARGET_GROWTH ** max(int(n_uniform) - 2, 0)
 
 
@@ -319,8 +320,7 @@ def geometry(config) -> Geometry:
 
     ``config.index_levels`` levels, or (None) as many as are useful for the capacity: a finer
     level is added while a memory full of uniformly spread points would hold at least
-    ``_LEVEL_ADD`` x ``max_neighbours`` points in a query's rows at that level (at least one;
-    more with more than two uniform dimensions, see ``level_target``).
+    ``_LEVEL_ADD`` x ``max_neighbours`` points in a query's rows at that level (at least one).
     """
     bounds = default_bounds(config)
     values = _value_cells(config, config.k_thresh * (1.0 + _SIDE_MARGIN))
@@ -336,7 +336,7 @@ def geometry(config) -> Geometry:
             break
         if wanted is None and levels:
             expected = config.capacity / n_values * _rows_volume(level, bounds)
-            if expected < _LEVEL_ADD * target / _LEVEL_TARGET * config.max_neighbours:
+            if expected < _LEVEL_ADD * config.max_neighbours:
                 break
         levels.append(level)
         start += level.n_cells + 1
