@@ -19,7 +19,8 @@ Design (all shapes static, so everything jits and vmaps; N = capacity, d = dim, 
   the query (e.g. the cells of another discrete action) are skipped. Level 0 (radius
   ``k_thresh``) answers every query; finer levels exist for large capacities
   (``index_levels``) and make the cost independent of the density: a query uses the finest
-  level whose rows hold at least 4k points (one lookup of the cell tables per level), keeps the
+  level whose rows hold at least ``level_target`` x k points (3k; 4.5k with three uniform
+  dimensions, e.g. continuous actions; one lookup of the cell tables per level), keeps the
   k nearest, and accepts them if the k-th lies within that level's radius (then no point
   outside the scanned rows can be nearer); otherwise it rescans at level 0 (rare).
 * **Cells.** A uniform dimension i gets a range [lo_i, hi_i] (``index_bounds``; default
