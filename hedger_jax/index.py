@@ -666,10 +666,15 @@ def _choose_level(geo: Geometry, index: GridIndex, first, last, live, k: int):
 def _recent_segments(geo: Geometry, index: GridIndex, first, last, live):
     """The recent-list entries in the level-0 rows (first/last/live (R,)): (list positions,
     lengths). Whole key buckets are taken (a superset of the rows: exact, as every
-    candidate's distance is tested)."""
+    candidate's distance is tested). Where a bucket spans two rows (buckets of more keys than
+    the contiguous dimension has cells, e.g. 4 dimensions), a row's segment starts after the
+    previous live row's end, so no entry is a candidate twice (it was: a slot counted twice
+    in K). The rows' keys ascend with the row number (``level_rows``), and so do the list's."""
     a = index.rstarts[first // geo.bucket]
-    b = index.rstarts[last // geo.bucket + 1]
-    return a, jnp.where(live, b - a, 0)
+    b = jnp.where(live, index.rstarts[last // geo.bucket + 1], 0)
+    done = jnp.concatenate([jnp.zeros((1,), b.dtype), jax.lax.cummax(b)[:-1]])
+    a = jnp.maximum(a, done)
+    return a, jnp.where(live, jnp.maximum(b - a, 0), 0)
 
 
 def _scan(config, geo: Geometry, index: GridIndex, head, z, lv, tab_start, tab_len,

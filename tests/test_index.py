@@ -13,7 +13,8 @@ import pytest
 
 from hedger_jax import index as gi
 from hedger_jax.config import HedgerConfig
-from hedger_jax.memory import (add_scaled, init_memory, refresh_index, select_neighbours)
+from hedger_jax.memory import (add_points, add_scaled, init_memory, refresh_index,
+                               select_neighbours)
 from hedger_jax.predict import predict_scaled
 from hedger_jax.train import Transition, train_episode
 
@@ -557,3 +558,35 @@ def test_continuous_levels_small_batches_of_candidate_actions_match_brute():
     flat = jax.device_get(_select_fn(cg)(mg, jnp.asarray(q)))
     np.testing.assert_array_equal(np.asarray(per_state.indices).reshape(-1, 8), flat.indices)
     np.testing.assert_array_equal(np.asarray(per_state.mask).reshape(-1, 8), flat.mask)
+
+
+def test_recent_buckets_spanning_two_rows_give_each_write_once():
+    """Four dimensions (the corridor's geometry): a key bucket of the recent list spans more
+    keys than a row, so two rows can share one. Every recent write must be a candidate once:
+    K has no repeated slot and is brute force's (a repeated slot was counted twice in the fit,
+    seen in the Figure 5 experiment)."""
+    kw = dict(action_low=(-1.0,), action_high=(1.0,), capacity=12000, bandwidth=0.05,
+              input_offset=(-0.785, -1.0, 0.0, 0.0), input_scale=(0.637, 0.5, 0.0091, 1.0))
+    cb = HedgerConfig(3, 1, neighbour_index="brute", **kw)
+    cg = HedgerConfig(3, 1, neighbour_index="grid", **kw)
+    geo = gi.geometry(cg)
+    lv = geo.levels[0]
+    assert geo.bucket > 1 and geo.bucket * 2 > lv.cells[lv.contig]     # buckets span rows
+    rng = np.random.default_rng(9)
+    first = np.asarray(gi.level_rows(geo, jnp.asarray([0.5, 0.5, 0.5, 0.5], jnp.float32))[0])
+    assert np.all(np.diff(first[0]) > 0)                    # rows in ascending key order
+    s = rng.normal([0.0, 1.0, 50.0], [0.1, 0.2, 10.0], (600, 3)).astype(np.float32)
+    a = rng.uniform(-1, 1, (600, 1)).astype(np.float32)
+    mb = add_points(cb, init_memory(cb), s, a, np.zeros(600, np.float32))
+    mg = add_points(cg, init_memory(cg), s, a, np.zeros(600, np.float32))  # all in the recent list
+    assert int(mg.index.n_new) == 600
+    q = np.concatenate([s[:150] + rng.normal(0, 0.02, (150, 3)).astype(np.float32),
+                        rng.uniform(-1, 1, (150, 1)).astype(np.float32)], 1)
+    z = jnp.asarray((q - np.asarray(cg.input_offset, np.float32))
+                    * np.asarray(cg.input_scale, np.float32))
+    got = jax.device_get(_select_fn(cg)(mg, z))
+    for i in range(len(q)):
+        real = got.indices[i][got.mask[i]]
+        assert len(set(real.tolist())) == len(real), f"query {i}: repeated slot {np.sort(real)}"
+    a_ = _assert_same(cb, mb, cg, mg, np.asarray(z))
+    assert a_.mask.sum(1).mean() > 3
