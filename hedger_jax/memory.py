@@ -176,9 +176,15 @@ def _pad_neighbours(config: HedgerConfig, idx, d2_sel, mask) -> Neighbours:
     j = jnp.arange(idx.shape[-1], dtype=jnp.int32)
     key = jnp.where(mask, idx.astype(jnp.int32), _CANON_PAD - idx.shape[-1] + j)
     # Rank of every key (a k x k comparison count: fuses and vectorises, unlike a sort call
-    # per query on CPU); the ranks are a permutation, applied by one scatter.
+    # per query on CPU); the ranks are a permutation, applied as a k x k one-hot selection
+    # (exact: one nonzero term per sum). A scatter here became a loop of k single-element
+    # updates (XLA's CPU scatter expansion): the one-hot is 1.09x faster for batched
+    # selection at 1e3-1e4 slots, 1.045x for 16 vmapped training seeds, 1.00-1.03x for one
+    # (paired, same process, bit-identical; 2-core CPU).
     rank = jnp.sum((key[None, :] < key[:, None]).astype(jnp.int32), axis=1)
-    idx, d2_sel = (jnp.zeros_like(a).at[rank].set(a, unique_indices=True) for a in (idx, d2_sel))
+    hit = rank[None, :] == j[:, None]                          # (k out, k in)
+    idx, d2_sel = (jnp.sum(jnp.where(hit, a[None, :], jnp.zeros((), a.dtype)), axis=1)
+                   for a in (idx, d2_sel))
     mask = j < jnp.sum(mask.astype(jnp.int32))             # the real neighbours come first
     return Neighbours(indices=idx.astype(jnp.int32), sqdist=jnp.where(mask, d2_sel, 0.0),
                       mask=mask)
