@@ -767,9 +767,21 @@ def _scan(config, geo: Geometry, index: GridIndex, head, z, lv, tab_start, tab_l
             else:                     # a wide user chunk: no width^2 constant
                 okc = jax.lax.associative_scan(jnp.add, ok.astype(jnp.int32))
                 before = okc - ok.astype(jnp.int32)
-            pos = jnp.where(ok, n_best + before, k)
-            return (best[0].at[pos].set(d2, mode="drop"),
-                    best[1].at[pos].set(slot, mode="drop"))
+            # Gathered, not scattered: output entry n_best + r takes the r-th accepted
+            # candidate, the one before which r were accepted (a branch-free binary search
+            # over the ascending inclusive counts). XLA's CPU scatter was a loop of single
+            # updates: training 1.03x, batched selection 1.03-1.05x (paired, bit-identical).
+            incl = computed_once(before + ok.astype(jnp.int32))            # (width,)
+            r = jnp.arange(k, dtype=jnp.int32) - n_best                    # (k,)
+            src = jnp.zeros((k,), jnp.int32)
+            step = 1 << (width.bit_length() - 1)
+            while step:
+                cand = jnp.minimum(src + step, width)
+                src = jnp.where(incl[cand - 1] <= r, cand, src)
+                step >>= 1
+            new = (r >= 0) & (r < incl[-1])
+            src = jnp.minimum(src, width - 1)
+            return jnp.where(new, d2[src], best[0]), jnp.where(new, slot[src], best[1])
 
         over = n_best + jnp.sum(ok.astype(jnp.int32)) > k
         return (p0 + width,) + batch_cond(over, top, append, (best_d2, best_idx),

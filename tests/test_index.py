@@ -212,6 +212,19 @@ def test_wide_user_chunk_one_level_matches_brute():
     assert counts.max() == 8 and counts.min() < 8      # overflowing and fitting queries
 
 
+def test_one_level_appends_over_several_odd_chunks_match_brute():
+    """One level, a chunk of 5 (not a power of two): a query's accepted candidates are
+    appended to the kept ones trip after trip (each appended entry gathered by a binary
+    search over the trip's accepted counts), at offsets that are not multiples of the chunk."""
+    rng = np.random.default_rng(13)
+    cb, cg = _pair(index_chunk=5, max_neighbours=16, index_levels=1)
+    pts = _uniform(rng, 700)
+    queries = np.concatenate([_uniform(rng, 60), pts[:20]])
+    a = _assert_same(cb, _memory(cb, pts), cg, _memory(cg, pts), queries)
+    counts = a.mask.sum(1)
+    assert (counts > 2 * 5).sum() > 10 and (counts < 16).sum() > 60   # most fit in k   # several trips, no overflow
+
+
 def test_cell_borders_and_threshold_distance():
     """Points on cell borders and at exactly k_thresh (in float32) from the query."""
     cb, cg = _pair()
