@@ -35,7 +35,7 @@ Design (all shapes static, so everything jits and vmaps; N = capacity, d = dim, 
 * **Tables.** Per level: the memory slots sorted by cell key, a copy of their points in that
   order, their keys, and ``starts``: the first sorted position of every cell. Build: a sort.
 * **Recent writes.** Points written since the last merge are not in the tables. The first
-  R of them (``recent_length``: ``index_recent``, or 1,024-4,096 growing with the capacity)
+  R of them (``recent_length``: ``index_recent``, or 1,024-8,192 growing with the capacity)
   are kept in a list sorted by level-0 key (an O(R) insertion per write); a query finds the
   parts of its level-0 rows in that list by binary search. Writes beyond R are scanned by
   brute force (exact, slower). ``refresh`` merges the writes into the tables -- O(N + cells)
@@ -121,19 +121,23 @@ def level_target(n_uniform: int) -> float:
 
 def recent_length(config) -> int:
     """R, the recent list's length: ``config.index_recent``, or (None) from the capacity N:
-    1,024 up to ~1.3e5 slots, 2,048 up to ~5.2e5, 4,096 above (2^round(log2(4 sqrt N)),
-    clipped to [1024, 4096]), at most N.
+    1,024 up to ~5.8e4 slots, 2,048 up to ~2.3e5, 4,096 up to ~9.3e5, 8,192 above
+    (2^round(log2(6 sqrt N)), clipped to [1024, 8192]), at most N.
 
-    Why it grows: a merge costs O(N) per pass and merges happen every ~3R/4 writes, while a
-    write costs O(R) (the sorted insertion). Training, discrete mountain car, paired: at 1e6
-    slots R = 2,048 / 4,096 were 1.27x / 1.37x faster than 1,024; at 3e5, 2,048 1.06x and 4,096
-    1.00x (measured, 2-core CPU); the write cost made larger lists slower at small capacities.
+    Why it grows: a merge costs O(N) per level and merges happen every ~3R/4 writes, while a
+    write costs O(R) (the sorted insertion) and every query scans the pending writes of its
+    rows. Training, mountain car, paired, serial codegen (2-core CPU): at 1e6 slots R = 8,192
+    was 1.08x faster than 4,096 discrete (0.98x continuous) and 16,384 0.94x of 8,192
+    (earlier 2,048 / 4,096 were 1.27x / 1.37x faster than 1,024); at 3e5 4,096 was 1.10x / 1.05x faster than 2,048
+    (discrete / continuous); at 1e5 2,048 1.03x / 1.00x against 1,024; at 5e4 2,048 was 1.08x
+    discrete but 0.81x continuous (its greedy search makes many queries per write), so 1,024
+    is kept up to ~5.8e4.
     """
     n = int(config.capacity)
     if getattr(config, "index_recent", None) is not None:
         return int(min(config.index_recent, n))
-    r = 2 ** int(round(math.log2(4.0 * math.sqrt(n))))
-    return int(min(max(r, 1024), 4096, n))
+    r = 2 ** int(round(math.log2(6.0 * math.sqrt(n))))
+    return int(min(max(r, 1024), 8192, n))
 
 
 def merge_window(geo: "Geometry", n: int) -> int:

@@ -490,12 +490,12 @@ def test_scanned_fraction_bounds_what_a_query_reads():
 
 def test_recent_length_grows_with_the_capacity_and_follows_the_config():
     auto = {n: gi.recent_length(_cfg("grid", capacity=n))
-            for n in (500, 20_000, 100_000, 300_000, 1_000_000, 4_000_000)}
-    assert auto == {500: 500, 20_000: 1024, 100_000: 1024, 300_000: 2048, 1_000_000: 4096,
-                    4_000_000: 4096}
+            for n in (500, 20_000, 50_000, 100_000, 300_000, 1_000_000, 4_000_000)}
+    assert auto == {500: 500, 20_000: 1024, 50_000: 1024, 100_000: 2048, 300_000: 4096,
+                    1_000_000: 8192, 4_000_000: 8192}
     assert gi.recent_length(_cfg("grid", capacity=1_000_000, index_recent=256)) == 256
     assert gi.recent_length(_cfg("grid", capacity=100, index_recent=256)) == 100
-    assert gi.geometry(_cfg("grid", capacity=300_000)).recent == 2048
+    assert gi.geometry(_cfg("grid", capacity=300_000)).recent == 4096
     for bad in (-1, 2.5, True):
         with pytest.raises(ValueError, match="index_recent"):
             _cfg("grid", index_recent=bad)
