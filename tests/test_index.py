@@ -225,6 +225,57 @@ def test_one_level_appends_over_several_odd_chunks_match_brute():
     assert (counts > 2 * 5).sum() > 10 and (counts < 16).sum() > 60   # most fit in k   # several trips, no overflow
 
 
+def _segment_inputs(rng, n_rows, recent):
+    """A random candidate sequence of n_rows table+recent segments plus the later-writes
+    segment (some parts empty), as ``index._scan`` lays it out: (table (n_rows + 1, 4),
+    sub_begin, sub_delta, total) and, independently, every position's (column, in table)."""
+    tab_len = rng.integers(0, 6, n_rows + 1) * (rng.uniform(size=n_rows + 1) < 0.7)
+    tab_len[-1] = 0
+    rec_len = rng.integers(0, 4, n_rows + 1) * (rng.uniform(size=n_rows + 1) < 0.5)
+    tab_start = rng.integers(0, 1000, n_rows + 1)
+    tab_start[-1] = 0
+    rec_start = rng.integers(0, recent, n_rows + 1)
+    rec_start[-1] = recent
+    lengths = tab_len + rec_len
+    begins = np.cumsum(lengths) - lengths
+    cols, in_tab = [], []
+    for s in range(n_rows + 1):
+        cols += [tab_start[s] + j for j in range(tab_len[s])]
+        cols += [rec_start[s] + j for j in range(rec_len[s])]
+        in_tab += [True] * tab_len[s] + [False] * rec_len[s]
+    table = np.stack([begins, tab_start, tab_len, rec_start], 1).astype(np.int32)
+    sub_begin = np.stack([begins, begins + tab_len], 1).reshape(-1)
+    shift = np.stack([tab_start - begins, rec_start - begins - tab_len], 1).reshape(-1)
+    sub_delta = shift - np.concatenate([[0], shift[:-1]])
+    return ((table, sub_begin.astype(np.int32), sub_delta.astype(np.int32)),
+            np.asarray(cols, np.int64), np.asarray(in_tab, bool))
+
+
+@pytest.mark.parametrize("batch", [None, 3, 12, 300])
+def test_candidate_columns_match_the_expanded_segments(batch):
+    """Both ways of mapping a candidate position to its (column, table part) -- the binary
+    search and the compare-and-count, picked by the number of vmapped queries -- against the
+    segments written out one position at a time (empty table, recent and whole segments)."""
+    rng = np.random.default_rng(21)
+    n = 1 if batch is None else batch
+    cases = [_segment_inputs(rng, 9, 64) for _ in range(n)]
+    width = 16
+    p = np.arange(width, dtype=np.int32) + 3
+    for impl in (gi._columns_by_search, gi._columns_by_count, gi._candidate_columns):
+        args = [np.stack([c[0][i] for c in cases]) for i in range(3)]
+        if batch is None:
+            col, tab = jax.jit(impl)(jnp.asarray(p), *(jnp.asarray(a[0]) for a in args))
+            col, tab = np.asarray(col)[None], np.asarray(tab)[None]
+        else:
+            col, tab = jax.jit(jax.vmap(impl, in_axes=(None, 0, 0, 0)))(
+                jnp.asarray(p), *(jnp.asarray(a) for a in args))
+            col, tab = np.asarray(col), np.asarray(tab)
+        for i, (_, want_col, want_tab) in enumerate(cases):
+            m = min(width, max(len(want_col) - 3, 0))
+            np.testing.assert_array_equal(col[i, :m], want_col[3:3 + m], err_msg=impl.__name__)
+            np.testing.assert_array_equal(tab[i, :m], want_tab[3:3 + m], err_msg=impl.__name__)
+
+
 def test_cell_borders_and_threshold_distance():
     """Points on cell borders and at exactly k_thresh (in float32) from the query."""
     cb, cg = _pair()
