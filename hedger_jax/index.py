@@ -47,7 +47,7 @@ Design (all shapes static, so everything jits and vmaps; N = capacity, d = dim, 
   that all fit are appended without it), so any occupancy is exact -- a full or
   overflowing cell just costs more trips. A candidate's column in the index arrays follows
   from its position in the sequence (``_candidate_columns``: a compare-and-count over the
-  segment starts, or a binary search for mid-sized vmapped batches, whichever XLA's CPU
+  segment starts, or a binary search for some vmapped batch sizes, whichever XLA's CPU
   backend runs faster). With several levels the first trip is
   ``first_trips`` chunks wide and only the queries with more candidates go on (under vmap,
   16 at a time), so a batch does not run its slowest query's trips for every query.
@@ -722,7 +722,8 @@ def _scan(config, geo: Geometry, index: GridIndex, head, z, lv, tab_start, tab_l
 
     def trip(p0, best_d2, best_idx, width, fresh=False):
         p = p0 + jnp.arange(width, dtype=jnp.int32)                  # (width,)
-        col, in_tab = _candidate_columns(p, table, sub_begin, sub_delta)
+        columns = _later_candidate_columns if L > 1 and not fresh else _candidate_columns
+        col, in_tab = columns(p, table, sub_begin, sub_delta)
         # (row, column) of the candidate: straight 2-D gathers from the (L + 1, ...) arrays
         # (``index.order[lv]`` with a traced lv would be a copy of the level's N entries).
         row = jnp.where(in_tab, lv, L)
@@ -843,32 +844,40 @@ def _columns_by_count(p, table, sub_begin, sub_delta):
     return col, (jnp.sum(past.astype(jnp.int32), axis=1) & 1) == 1
 
 
-@custom_vmap
-def _candidate_columns(p, table, sub_begin, sub_delta):
-    """Column (in the level's or the recent list's row of the index arrays) and table flag of
-    the candidates at positions p (width,) of a query's candidate sequence -> (int32 (width,),
-    bool (width,)). table: (segments, 4) (begin, table start, table length, recent start);
-    sub_begin, sub_delta: (2 segments,) (``_scan``). Same result either way; which way is
-    cheaper depends on how many queries run together (``_COUNT_BATCH``)."""
-    return _columns_by_count(p, table, sub_begin, sub_delta)
+def _columns_dispatch(search_batches: Tuple[int, int]):
+    """The candidate-column function (see ``_candidate_columns``) that uses the binary search
+    under ``vmap`` with search_batches[0] <= members < search_batches[1], else the count."""
+
+    @custom_vmap
+    def columns(p, table, sub_begin, sub_delta):
+        return _columns_by_count(p, table, sub_begin, sub_delta)
+
+    @columns.def_vmap
+    def columns_vmap(axis_size, in_batched, p, table, sub_begin, sub_delta):
+        lo, hi = search_batches
+        impl = _columns_by_search if lo <= axis_size < hi else _columns_by_count
+        axes = tuple(0 if b else None for b in in_batched)
+        return jax.vmap(impl, in_axes=axes)(p, table, sub_begin, sub_delta), (True, True)
+
+    return columns
 
 
-#: Under ``vmap`` with at least ``_COUNT_BATCH[0]`` and fewer than ``_COUNT_BATCH[1]`` members
-#: the binary search is used, otherwise the compare-and-count. Measured (paired, 2-core CPU,
-#: mountain car, selection alone): count/search speed 1.01-1.38x for single queries, 0.95-1.09x
-#: for batches of 3, 0.63-1.14x for batches of 12 (0.63 at 3e5 discrete, 0.83 continuous),
-#: 0.94-1.06x for 64, 1.11-1.23x for 4096 (XLA's CPU backend emits these small reductions as
-#: scalar loops; its batched gathers are dearer per element still at large batches).
-_COUNT_BATCH = (8, 256)
-
-
-@_candidate_columns.def_vmap
-def _candidate_columns_vmap(axis_size, in_batched, p, table, sub_begin, sub_delta):
-    lo, hi = _COUNT_BATCH
-    impl = _columns_by_search if lo <= axis_size < hi else _columns_by_count
-    axes = tuple(0 if b else None for b in in_batched)
-    out = jax.vmap(impl, in_axes=axes)(p, table, sub_begin, sub_delta)
-    return out, (True, True)
+#: ``_candidate_columns(p, table, sub_begin, sub_delta)``: the column (in the level's or the
+#: recent list's row of the index arrays) and table flag of the candidates at positions p
+#: (width,) of a query's candidate sequence -> (int32 (width,), bool (width,)). table:
+#: (segments, 4) (begin, table start, table length, recent start); sub_begin, sub_delta:
+#: (2 segments,) (``_scan``). Both ways give the same result; which is cheaper depends on how
+#: many queries run together (XLA's CPU backend emits the count's small reductions as scalar
+#: loops, and its batched gathers element by element). Measured (paired, 2-core CPU, mountain
+#: car, selection alone), count / search speed: 1.01-1.38x for single queries, 0.95-1.09x for
+#: batches of 3, 0.63-1.14x for 12, 0.94-1.06x for 64, 1.11-1.23x for 4096. So the search
+#: serves vmapped batches of 8-255 queries ...
+_candidate_columns = _columns_dispatch((8, 256))
+#: ... and, in the multi-level scan's later trips (queries with more candidates than the first
+#: trip held, and level-0 rescans), every vmapped batch below 256: continuous training at 3e5
+#: slots (its ``batch_cond`` groups of 4 scan on) 1.13x faster than with the count there,
+#: discrete 0.96-0.98x at 1e5-1e6 (batches of 3-4), continuous 1e5 1.00x (paired).
+_later_candidate_columns = _columns_dispatch((1, 256))
 
 
 #: Widest chunk whose prefix count is a matrix product (a width^2 float32 constant).

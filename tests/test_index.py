@@ -254,14 +254,16 @@ def _segment_inputs(rng, n_rows, recent):
 @pytest.mark.parametrize("batch", [None, 3, 12, 300])
 def test_candidate_columns_match_the_expanded_segments(batch):
     """Both ways of mapping a candidate position to its (column, table part) -- the binary
-    search and the compare-and-count, picked by the number of vmapped queries -- against the
-    segments written out one position at a time (empty table, recent and whole segments)."""
+    search and the compare-and-count, and the two dispatchers that pick one by the number of
+    vmapped queries -- against the segments written out one position at a time (empty table,
+    recent and whole segments)."""
     rng = np.random.default_rng(21)
     n = 1 if batch is None else batch
     cases = [_segment_inputs(rng, 9, 64) for _ in range(n)]
     width = 16
     p = np.arange(width, dtype=np.int32) + 3
-    for impl in (gi._columns_by_search, gi._columns_by_count, gi._candidate_columns):
+    for impl in (gi._columns_by_search, gi._columns_by_count, gi._candidate_columns,
+                 gi._later_candidate_columns):
         args = [np.stack([c[0][i] for c in cases]) for i in range(3)]
         if batch is None:
             col, tab = jax.jit(impl)(jnp.asarray(p), *(jnp.asarray(a[0]) for a in args))
@@ -272,8 +274,8 @@ def test_candidate_columns_match_the_expanded_segments(batch):
             col, tab = np.asarray(col), np.asarray(tab)
         for i, (_, want_col, want_tab) in enumerate(cases):
             m = min(width, max(len(want_col) - 3, 0))
-            np.testing.assert_array_equal(col[i, :m], want_col[3:3 + m], err_msg=impl.__name__)
-            np.testing.assert_array_equal(tab[i, :m], want_tab[3:3 + m], err_msg=impl.__name__)
+            np.testing.assert_array_equal(col[i, :m], want_col[3:3 + m], err_msg=str(impl))
+            np.testing.assert_array_equal(tab[i, :m], want_tab[3:3 + m], err_msg=str(impl))
 
 
 def test_cell_borders_and_threshold_distance():
