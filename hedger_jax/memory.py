@@ -146,7 +146,14 @@ def select_neighbours(config: HedgerConfig, memory: Memory, z: jax.Array) -> Nei
         index = memory.index
         if index is None:  # e.g. a memory built by hand: index everything now (exact)
             index = _grid.build(config, memory.points, memory.size)
-        idx, d2_sel, mask = _grid.select(config, memory.points, memory.head, index, z)
+        # The search is piecewise constant in z and the points (its indices are what the fit
+        # uses; the fit recomputes the distances from the gathered points), so it is run on
+        # stop-gradient inputs: then jax.grad / jvp of a prediction work through the grid
+        # index as through brute force (its loops' custom batching rules have no autodiff
+        # rules; with constant inputs none is needed).
+        idx, d2_sel, mask = _grid.select(
+            config, jax.lax.stop_gradient(memory.points), memory.head,
+            jax.tree_util.tree_map(jax.lax.stop_gradient, index), jax.lax.stop_gradient(z))
         return _pad_neighbours(config, idx, d2_sel, mask)
     d2 = squared_distances(memory.points, z)
     d2 = jnp.where(valid_mask(memory), d2, jnp.inf)

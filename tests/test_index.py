@@ -397,6 +397,35 @@ def test_predictions_and_training_match_brute():
     assert int(tg.index.n_new) == T
 
 
+@pytest.mark.parametrize("levels", [1, 3])
+def test_gradients_of_predictions_through_the_grid_match_brute(levels):
+    """jax.grad of a prediction w.r.t. the query and the stored values works through the grid
+    index (one level and several) and equals brute force's; w.r.t. the values it is the local
+    fit's equivalent kernel, whose weights sum to 1 (an intercept reproduces constants)."""
+    rng = np.random.default_rng(8)
+    cb, cg = _pair(max_neighbours=16, bandwidth=0.06, index_levels=levels)
+    pts = _uniform(rng, 1500)
+    mb, mg = _memory(cb, pts), _memory(cg, pts)
+    vals = jnp.asarray(rng.normal(size=cb.capacity).astype(np.float32))
+    mb, mg = mb._replace(values=vals), mg._replace(values=vals)
+    q = jnp.asarray(pts[:12] + rng.normal(0, 0.01, (12, 3)).astype(np.float32)
+                    * np.array([1, 1, 0], np.float32))
+
+    def grads(cfg, mem):
+        def value(z, values):
+            return predict_scaled(cfg, mem._replace(values=values), z).value
+        return jax.jit(jax.vmap(jax.grad(value, argnums=(0, 1)), in_axes=(0, None)))(
+            q, mem.values)
+
+    (gz_b, gv_b), (gz_g, gv_g) = grads(cb, mb), grads(cg, mg)
+    known = np.asarray(jax.vmap(lambda z: predict_scaled(cb, mb, z).known)(q))
+    assert known.sum() >= 8
+    np.testing.assert_allclose(np.asarray(gz_g), np.asarray(gz_b), rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(gv_g), np.asarray(gv_b), rtol=1e-4, atol=1e-6)
+    assert np.all(np.abs(np.asarray(gz_g)[known, :2]).sum(1) > 0)
+    np.testing.assert_allclose(np.asarray(gv_g)[known].sum(1), 1.0, atol=1e-4)
+
+
 def test_vmap_over_memories():
     rng = np.random.default_rng(6)
     cb, cg = _pair(capacity=500)
