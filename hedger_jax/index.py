@@ -867,12 +867,14 @@ def _first_cut(geo: Geometry, k: int):
 _CUT_STEPS = 4
 _CUT_RATIO = 1.3
 #: ``_first_cut`` cuts for vmapped batches of at least this many queries. Why: XLA's CPU
-#: ``top_k`` (a partial sort per query) costs ~1 us plus ~30-60 ns per finite value, and a
+#: ``top_k`` (a partial sort per query) costs ~0.5 us plus ~30-60 ns per finite value, and a
 #: finer level's first trip holds ~70 candidates within its radius for k = 32: the cut
-#: leaves ~37 (measured, mountain car, 3e5 uniform points), batched selection 1.04-1.13x at
-#: 1e5-3e5. For single queries and small batches (training) it was no faster, and with
-#: continuous actions 0.75x per CPU-second (paired, 2-core CPU).
-_CUT_MIN_BATCH = 256
+#: leaves ~37 (measured, mountain car, 3e5 uniform points). Batched selection, cut / no cut
+#: (paired, 2-core CPU): 4096 queries 1.05-1.09x discrete at 1e5-1e6, 1.03-1.05x continuous;
+#: batches of 64 / 128 1.05-1.08x / 1.05-1.09x discrete, 1.03x / 1.05x continuous at 3e5;
+#: batches of 16-32 0.97-1.04x. In training (single queries and batches of 3-11) it was no
+#: faster, and with continuous actions 0.75x per CPU-second.
+_CUT_MIN_BATCH = 64
 
 
 def _columns_by_search(p, table, sub_begin, sub_delta):
