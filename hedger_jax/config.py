@@ -75,7 +75,8 @@ class HedgerConfig:
     ``AUTO_GRID_CAPACITY_LOW_DIM`` = 512 slots up for inputs of at most 4 dimensions, from
     ``AUTO_GRID_CAPACITY`` = 16,384 for more, unless the kernel is wide against the input
     ranges: ``AUTO_GRID_MAX_FRACTION``); ``index_chunk`` candidates per step of the grid scan
-    (with several levels the first step is ``index.first_trips`` chunks wide);
+    (None: ``index.chunk_width``, 64, or 16-48 for small one-level memories; with several
+    levels the first step is ``index.first_trips`` chunks wide);
     ``index_bounds`` the scaled range ((lo, hi) per dimension) the grid covers (default: [0, 1]
     per state dimension and the scaled action range; points outside are clamped to the border
     cells, never dropped); ``index_levels`` the number of grid levels (finer levels keep the
@@ -114,7 +115,7 @@ class HedgerConfig:
     ridge: float = 1e-6
     ivh_tol: float = 1e-3
     neighbour_index: str = "auto"
-    index_chunk: int = 64
+    index_chunk: Optional[int] = None
     index_bounds: Optional[Tuple[Tuple[float, float], ...]] = None
     index_levels: Optional[int] = None
     index_recent: Optional[int] = None
@@ -202,10 +203,12 @@ class HedgerConfig:
         if self.neighbour_index not in NEIGHBOUR_INDEXES:
             raise ValueError(f"neighbour_index: must be one of {NEIGHBOUR_INDEXES}, "
                              f"got {self.neighbour_index!r}")
-        if isinstance(self.index_chunk, bool) or int(self.index_chunk) != self.index_chunk \
-                or int(self.index_chunk) < 1:
-            raise ValueError(f"index_chunk: must be an integer >= 1, got {self.index_chunk!r}")
-        set_("index_chunk", int(self.index_chunk))
+        if self.index_chunk is not None:
+            if isinstance(self.index_chunk, bool) or int(self.index_chunk) != self.index_chunk \
+                    or int(self.index_chunk) < 1:
+                raise ValueError(f"index_chunk: must be None or an integer >= 1, "
+                                 f"got {self.index_chunk!r}")
+            set_("index_chunk", int(self.index_chunk))
         if self.index_levels is not None:
             if isinstance(self.index_levels, bool) or int(self.index_levels) != self.index_levels \
                     or int(self.index_levels) < 1:

@@ -360,6 +360,37 @@ def test_big_query_batches_cut_before_top_k_and_match_brute():
     assert first_trip_finite(True) < 0.8 * first_trip_finite(False)
 
 
+def test_chunk_width_fits_a_full_uniform_memory_and_stays_exact_beyond():
+    """``index.chunk_width``: the config's ``index_chunk`` when set; 64 with several levels;
+    for a small one-level grid a multiple of 16 that holds every query's rows in a full
+    memory of uniform points (so a vmapped scan makes one step), and clustered points beyond
+    it are found exactly in more steps."""
+    assert gi.chunk_width(_cfg("grid", index_chunk=24)) == 24
+    assert gi.chunk_width(_cfg("grid", capacity=200_000)) == 64
+    rng = np.random.default_rng(29)
+    for cap in (200, 800):                                      # 16 and 48 wide
+        cb, cg = _pair(capacity=cap, index_levels=1)
+        width = gi.chunk_width(cg)
+        geo = gi.geometry(cg)
+        assert len(geo.levels) == 1 and width % 16 == 0 and 16 <= width < 64
+        pts = _uniform(rng, cap)
+        mg = _memory(cg, pts)
+
+        @jax.jit
+        @jax.vmap
+        def count(z):
+            first, last, live = gi.level_rows(geo, z)
+            return gi._choose_level(geo, mg.index, first, last, live, cg.max_neighbours)[2].sum()
+
+        counts = np.asarray(count(jnp.asarray(_uniform(rng, 4096))))
+        assert counts.max() <= width < 2 * counts.max()
+        clustered = pts.copy()
+        clustered[: cap // 4, :2] = 0.5 + 0.01 * clustered[: cap // 4, :2]   # > width per row
+        queries = np.concatenate([clustered[:30] + 0.002, _uniform(rng, 70)])
+        a = _assert_same(cb, _memory(cb, clustered), cg, _memory(cg, clustered), queries)
+        assert a.mask.sum(1).max() == cg.max_neighbours
+
+
 def test_cell_borders_and_threshold_distance():
     """Points on cell borders and at exactly k_thresh (in float32) from the query."""
     cb, cg = _pair()
@@ -694,8 +725,8 @@ def test_level_target_grows_with_the_uniform_dimensions():
     cont = HedgerConfig(2, 1, action_low=(-1.0,), action_high=(1.0,), capacity=10 ** 5,
                         bandwidth=0.015, max_neighbours=16, neighbour_index="grid")
     assert gi.geometry(disc).target == 3 and gi.geometry(cont).target == 4.5
-    assert gi.first_trips(disc) * disc.index_chunk >= 2 * 3 * 16
-    assert gi.first_trips(cont) * cont.index_chunk >= 2 * 4.5 * 16
+    assert gi.first_trips(disc) * gi.chunk_width(disc) >= 2 * 3 * 16
+    assert gi.first_trips(cont) * gi.chunk_width(cont) >= 2 * 4.5 * 16
 
 
 def test_continuous_levels_small_batches_of_candidate_actions_match_brute():
