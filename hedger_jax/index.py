@@ -73,6 +73,7 @@ import numpy as np
 from jax.custom_batching import custom_vmap
 
 from hedger_jax.fusion import computed_once
+from hedger_jax.kselect import exclusive_count, nth_true, smallest_k
 from hedger_jax.loops import batch_cond
 
 #: Largest number of grid cells per level (size of a ``starts`` table); see ``max_cells``.
@@ -745,9 +746,8 @@ def _scan(config, geo: Geometry, index: GridIndex, head, z, lv, tab_start, tab_l
             ok = ok & ~(in_tab & (jax.lax.rem(slot - h0 + n, n) < n_new))
 
         def top(best):
-            neg, which = jax.lax.top_k(-jnp.concatenate([best[0], jnp.where(ok, d2, jnp.inf)]),
-                                       k)
-            return -neg, jnp.concatenate([best[1], slot])[which]
+            return smallest_k(jnp.concatenate([best[0], jnp.where(ok, d2, jnp.inf)]),
+                              jnp.concatenate([best[1], slot]), k)
 
         if L > 1:                     # rows of ~3k+ candidates: the k nearest must be chosen
             if fresh:   # nothing kept yet: top_k over the new candidates only (k fewer
@@ -755,8 +755,7 @@ def _scan(config, geo: Geometry, index: GridIndex, head, z, lv, tab_start, tab_l
                 #             packing the candidates within the radius into half the width
                 #             first was slower)
                 dd = _first_cut(geo, k)(jnp.where(ok, d2, jnp.inf), r2)
-                neg, which = jax.lax.top_k(-dd, k)
-                return p0 + width, -neg, slot[which]
+                return (p0 + width,) + smallest_k(dd, slot, k)
             return (p0 + width,) + top((best_d2, best_idx))
         # One level (small memories): usually every candidate within the radius fits in the
         # k kept entries, whose finite ones are a prefix; then the new ones are appended
@@ -766,26 +765,16 @@ def _scan(config, geo: Geometry, index: GridIndex, head, z, lv, tab_start, tab_l
         n_best = jnp.sum(jnp.isfinite(best_d2).astype(jnp.int32))
 
         def append(best):
-            # Exclusive prefix count of ok as one small matrix product (exact in float32):
-            # XLA's cumsum (a reduce-window) cost 24 us per step for 16 vmapped seeds.
-            if width <= _MATMUL_PREFIX_MAX:
-                before = jnp.dot(ok.astype(jnp.float32), _strictly_upper(width),
-                                 precision=jax.lax.Precision.HIGHEST).astype(jnp.int32)
-            else:                     # a wide user chunk: no width^2 constant
-                okc = jax.lax.associative_scan(jnp.add, ok.astype(jnp.int32))
-                before = okc - ok.astype(jnp.int32)
+            # Exclusive prefix count of ok (``kselect.exclusive_count``: a small matrix
+            # product, exact in float32, or an associative scan; XLA's cumsum, a
+            # reduce-window, cost 24 us per step for 16 vmapped seeds).
             # Gathered, not scattered: output entry n_best + r takes the r-th accepted
             # candidate, the one before which r were accepted (a branch-free binary search
             # over the ascending inclusive counts). XLA's CPU scatter was a loop of single
             # updates: training 1.03x, batched selection 1.03-1.05x (paired, bit-identical).
-            incl = computed_once(before + ok.astype(jnp.int32))            # (width,)
+            incl = computed_once(exclusive_count(ok) + ok.astype(jnp.int32))   # (width,)
             r = jnp.arange(k, dtype=jnp.int32) - n_best                    # (k,)
-            src = jnp.zeros((k,), jnp.int32)
-            step = 1 << (width.bit_length() - 1)
-            while step:
-                cand = jnp.minimum(src + step, width)
-                src = jnp.where(incl[cand - 1] <= r, cand, src)
-                step >>= 1
+            src = nth_true(incl, r)
             new = (r >= 0) & (r < incl[-1])
             src = jnp.minimum(src, width - 1)
             return jnp.where(new, d2[src], best[0]), jnp.where(new, slot[src], best[1])
@@ -941,16 +930,6 @@ _candidate_columns = _columns_dispatch((8, 256))
 _later_candidate_columns = _columns_dispatch((1, 256))
 
 
-#: Widest chunk whose prefix count is a matrix product (a width^2 float32 constant).
-_MATMUL_PREFIX_MAX = 256
-
-
-@functools.lru_cache(maxsize=None)
-def _strictly_upper(n: int) -> np.ndarray:
-    """float32 (n, n) with 1 above the diagonal: x @ it = exclusive prefix sums of x."""
-    return np.triu(np.ones((n, n), np.float32), 1)
-
-
 #: Widest default scan step (``chunk_width``), and the steps' granularity.
 _CHUNK = 64
 _CHUNK_STEP = 16
@@ -1037,8 +1016,8 @@ def select(config, points: jax.Array, head: jax.Array, index: GridIndex, z: jax.
     if config.full_policy == "overwrite_oldest":
         # Saturated (more writes since the merge than slots): brute force over every slot.
         def brute(_):
-            neg, idx = jax.lax.top_k(-_sqdist(points, z), k)
-            return idx.astype(jnp.int32), -neg
+            d2, idx = smallest_k(_sqdist(points, z), jnp.arange(n, dtype=jnp.int32), k)
+            return idx, d2
 
         found = batch_cond(index.n_new > n, brute, lambda c: c, found)
     best_idx, best_d2 = found

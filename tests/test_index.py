@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from hedger_jax import index as gi
+from hedger_jax import kselect
 from hedger_jax.config import HedgerConfig
 from hedger_jax.memory import (add_points, add_scaled, init_memory, refresh_index,
                                select_neighbours)
@@ -199,10 +200,10 @@ def test_scan_rest_runs_for_the_queries_with_more_candidates_only(levels):
 
 
 def test_wide_user_chunk_one_level_matches_brute():
-    """A chunk wider than ``_MATMUL_PREFIX_MAX`` (its prefix count is a scan, not a matrix
+    """A chunk wider than ``kselect.MATMUL_PREFIX_MAX`` (its prefix count is a scan, not a matrix
     product), with queries whose candidates fit in k and queries that overflow it."""
     rng = np.random.default_rng(12)
-    cb, cg = _pair(index_chunk=gi._MATMUL_PREFIX_MAX + 44, max_neighbours=8, index_levels=1)
+    cb, cg = _pair(index_chunk=kselect.MATMUL_PREFIX_MAX + 44, max_neighbours=8, index_levels=1)
     cluster = _uniform(rng, 1)[0] + rng.normal(0, 0.01, (300, 3)).astype(np.float32)
     cluster[:, 2] = np.round(cluster[:, 2])
     pts = np.concatenate([cluster, _uniform(rng, 500)])
@@ -336,26 +337,31 @@ def test_big_query_batches_cut_before_top_k_and_match_brute():
     geo = gi.geometry(cg)
 
     def first_trip_finite(cut):                    # finite values handed to the first top_k
-        seen = []
+        traced, seen = [], []
         real = jax.lax.top_k
 
         def spy(x, kk):
-            seen.append(x)
+            if not traced:                         # the first trip's (traced first)
+                traced.append(True)
+                jax.debug.callback(lambda c: seen.append(np.asarray(c)),
+                                   jnp.sum(jnp.isfinite(x), axis=-1))
             return real(x, kk)
 
         def one(z):
             first, last, live = gi.level_rows(geo, z)
             lv, s0, ln = gi._choose_level(geo, mg.index, first, last, live, 16)
             rec = jnp.zeros_like(s0)
-            gi._scan(cg, geo, mg.index, mg.head, z, lv, s0, ln, rec, rec)
-            return jnp.sum(jnp.isfinite(seen[0]))
+            return gi._scan(cg, geo, mg.index, mg.head, z, lv, s0, ln, rec, rec)
 
         try:
             jax.lax.top_k = spy
             old, gi._CUT_MIN_BATCH = gi._CUT_MIN_BATCH, (1 if cut else 10 ** 9)
-            return float(jnp.mean(jax.jit(jax.vmap(one))(q)))
+            jax.block_until_ready(jax.jit(jax.vmap(one))(q))
+            jax.effects_barrier()
         finally:
             jax.lax.top_k, gi._CUT_MIN_BATCH = real, old
+        assert traced and seen                     # a big batch: the first trip's top_k
+        return float(np.mean(np.concatenate([np.ravel(c) for c in seen])))
 
     assert first_trip_finite(True) < 0.8 * first_trip_finite(False)
 

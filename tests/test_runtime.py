@@ -3,14 +3,16 @@ import os
 import subprocess
 import sys
 
-from hedger_jax.runtime import (LEGACY_EMITTERS_FLAG, NO_YNN_REDUCE_FLAG, OPT_OUT_VARIABLE,
-                                SAFE_CPU_FLAG, apply_safe_cpu_flags, cpu_flags)
+from hedger_jax.runtime import (LEGACY_EMITTERS_FLAG, LOOP_KERNELS_FLAG, LOOP_KERNELS_OPTION,
+                                NO_YNN_REDUCE_FLAG, OPT_OUT_VARIABLE, SAFE_CPU_FLAG,
+                                apply_safe_cpu_flags, cpu_flags, loop_kernels_enabled)
 
 V010, V011 = (0, 10), (0, 11)
 
 
 def test_flags_depend_on_the_jaxlib_version():
-    assert cpu_flags(V010) == [SAFE_CPU_FLAG, NO_YNN_REDUCE_FLAG, LEGACY_EMITTERS_FLAG]
+    assert cpu_flags(V010) == [SAFE_CPU_FLAG, NO_YNN_REDUCE_FLAG, LEGACY_EMITTERS_FLAG,
+                               LOOP_KERNELS_FLAG]
     # An unknown XLA flag aborts the process: only add it where it is known to exist.
     assert cpu_flags(V011) == [SAFE_CPU_FLAG]
     assert cpu_flags((0, 4)) == [SAFE_CPU_FLAG]
@@ -19,7 +21,7 @@ def test_flags_depend_on_the_jaxlib_version():
 def test_adds_flags_to_empty_environment_once():
     env = {}
     assert apply_safe_cpu_flags(env, V010) is True
-    want = f"{SAFE_CPU_FLAG} {NO_YNN_REDUCE_FLAG} {LEGACY_EMITTERS_FLAG}"
+    want = f"{SAFE_CPU_FLAG} {NO_YNN_REDUCE_FLAG} {LEGACY_EMITTERS_FLAG} {LOOP_KERNELS_FLAG}"
     assert env["XLA_FLAGS"] == want
     assert apply_safe_cpu_flags(env, V010) is False          # idempotent
     assert env["XLA_FLAGS"] == want
@@ -33,7 +35,7 @@ def test_keeps_existing_flags():
     apply_safe_cpu_flags(env, V010)
     assert env["XLA_FLAGS"].split() == ["--xla_force_host_platform_device_count=2",
                                         SAFE_CPU_FLAG, NO_YNN_REDUCE_FLAG,
-                                        LEGACY_EMITTERS_FLAG]
+                                        LEGACY_EMITTERS_FLAG, LOOP_KERNELS_FLAG]
 
 
 def test_user_setting_of_the_same_flag_wins():
@@ -44,11 +46,25 @@ def test_user_setting_of_the_same_flag_wins():
     assert apply_safe_cpu_flags(env, V010) is True
     assert env["XLA_FLAGS"].split() == ["--xla_cpu_experimental_ynn_fusion_type="
                                         "+LIBRARY_FUSION_TYPE_DOT", SAFE_CPU_FLAG,
-                                        LEGACY_EMITTERS_FLAG]
+                                        LEGACY_EMITTERS_FLAG, LOOP_KERNELS_FLAG]
     env = {"XLA_FLAGS": "--xla_cpu_use_fusion_emitters=true"}         # the user's choice wins
     assert apply_safe_cpu_flags(env, V010) is True
     assert env["XLA_FLAGS"].split() == ["--xla_cpu_use_fusion_emitters=true", SAFE_CPU_FLAG,
-                                        NO_YNN_REDUCE_FLAG]
+                                        NO_YNN_REDUCE_FLAG, LOOP_KERNELS_FLAG]
+    # Any backend extra option of the user's: theirs alone (XLA keeps one list).
+    env = {"XLA_FLAGS": "--xla_backend_extra_options=xla_cpu_disable_loop_unrolling=true"}
+    assert apply_safe_cpu_flags(env, V010) is True
+    assert env["XLA_FLAGS"].split()[0] == "--xla_backend_extra_options=xla_cpu_disable_loop_unrolling=true"
+    assert LOOP_KERNELS_FLAG not in env["XLA_FLAGS"]
+
+
+def test_loop_kernels_enabled_reads_the_threshold():
+    assert loop_kernels_enabled({"XLA_FLAGS": LOOP_KERNELS_FLAG})        # CPU backend here
+    assert not loop_kernels_enabled({"XLA_FLAGS": ""})
+    assert not loop_kernels_enabled({"XLA_FLAGS": f"--xla_backend_extra_options="
+                                                  f"{LOOP_KERNELS_OPTION}=1000"})
+    assert loop_kernels_enabled({"XLA_FLAGS": f"--xla_backend_extra_options=a=1,"
+                                              f"{LOOP_KERNELS_OPTION}={1 << 45}"})
 
 
 def test_opt_out_variable():
