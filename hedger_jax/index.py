@@ -747,7 +747,7 @@ def _scan(config, geo: Geometry, index: GridIndex, head, z, lv, tab_start, tab_l
 
         def top(best):
             return smallest_k(jnp.concatenate([best[0], jnp.where(ok, d2, jnp.inf)]),
-                              jnp.concatenate([best[1], slot]), k)
+                              jnp.concatenate([best[1], slot]), k, kernel_form=L == 1)
 
         if L > 1:                     # rows of ~3k+ candidates: the k nearest must be chosen
             if fresh:   # nothing kept yet: top_k over the new candidates only (k fewer
@@ -755,7 +755,7 @@ def _scan(config, geo: Geometry, index: GridIndex, head, z, lv, tab_start, tab_l
                 #             packing the candidates within the radius into half the width
                 #             first was slower)
                 dd = _first_cut(geo, k)(jnp.where(ok, d2, jnp.inf), r2)
-                return (p0 + width,) + smallest_k(dd, slot, k)
+                return (p0 + width,) + smallest_k(dd, slot, k, kernel_form=False)
             return (p0 + width,) + top((best_d2, best_idx))
         # One level (small memories): usually every candidate within the radius fits in the
         # k kept entries, whose finite ones are a prefix; then the new ones are appended
@@ -1016,7 +1016,8 @@ def select(config, points: jax.Array, head: jax.Array, index: GridIndex, z: jax.
     if config.full_policy == "overwrite_oldest":
         # Saturated (more writes since the merge than slots): brute force over every slot.
         def brute(_):
-            d2, idx = smallest_k(_sqdist(points, z), jnp.arange(n, dtype=jnp.int32), k)
+            d2, idx = smallest_k(_sqdist(points, z), jnp.arange(n, dtype=jnp.int32), k,
+                                 kernel_form=len(geo.levels) == 1)
             return idx, d2
 
         found = batch_cond(index.n_new > n, brute, lambda c: c, found)

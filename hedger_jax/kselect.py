@@ -4,9 +4,9 @@ backend can compile -- with the loop around them -- into one kernel.
 Why. XLA's CPU runtime runs a program as a sequence of small compiled kernels ("thunks"),
 paying ~20-100 ns per kernel call; a HEDGER training step is hundreds of tiny kernels, so
 that overhead is most of its cost. XLA can instead compile a whole ``while`` loop into a
-single kernel (its "small while loop hoisting", enabled for loops of any size by the flag in
-``hedger_jax.runtime``), but only a loop that contains no custom call, no sort and no
-batched matrix product. ``lax.top_k`` is a custom call on the CPU, and the grid scan's
+single kernel (its "small while loop hoisting", enabled for loops of any size by the opt-in
+flag of ``hedger_jax.runtime``, ``HEDGER_JAX_LOOP_KERNELS=1``), but only a loop that
+contains no custom call, no sort and no batched matrix product. ``lax.top_k`` is a custom call on the CPU, and the grid scan's
 prefix count a (batched) matrix product. So for vmapped batches of fewer than
 ``BIG_BATCH`` queries (the training step's 1-11 queries, an evaluation's lanes) and for
 single queries:
@@ -18,8 +18,10 @@ single queries:
 * ``exclusive_count`` sums within blocks of 16 and over the block totals by masked
   reductions (an associative scan's ladder of slices made the kernels slow to compile).
 
-Big vmapped batches (e.g. ``predict`` over thousands of queries) keep ``lax.top_k`` and the
-matrix product: they are not compiled into one kernel anyway (XLA splits their large
+Without the flag, and for multi-level grids (``smallest_k(kernel_form=False)``: selecting
+on every scan trip, the sort-free form cost as much as the kernels saved), ``lax.top_k``
+and the matrix product are used. Big vmapped batches (e.g. ``predict`` over thousands of
+queries) keep them too: they are not compiled into one kernel anyway (XLA splits their large
 operations over threads), and there those are faster (measured in ``benchmarks``).
 """
 from __future__ import annotations
@@ -83,30 +85,34 @@ def _members(x: jax.Array) -> int:
     return int(np.prod(x.shape[:-1], dtype=np.int64))
 
 
-@custom_vmap
-def _exclusive_count(x):
-    # x (..., n): leading axes are vmapped members (the batching rule folds every vmap level
-    # into them, so the choice sees the whole batch of nested vmaps, e.g. seeds x queries).
-    wide = x.shape[-1] > MATMUL_PREFIX_MAX
-    if wide or (x.ndim > 1 and _members(x) < BIG_BATCH and loop_kernels_enabled()):
-        return _count_by_blocks(x)
-    return _count_by_matmul(x)    # one vector (a vector-matrix product) or a big batch
-
-
 def _broadcast_members(axis_size: int, batched: bool, x: jax.Array) -> jax.Array:
     return x if batched else jnp.broadcast_to(x, (axis_size,) + x.shape)
 
 
-@_exclusive_count.def_vmap
-def _exclusive_count_vmap(axis_size, in_batched, x):
-    return _exclusive_count(_broadcast_members(axis_size, in_batched[0], x)), True
+@functools.lru_cache(maxsize=None)
+def _exclusive_count_fn():
+    @custom_vmap
+    def count(x):
+        # x (..., n): leading axes are vmapped members (the batching rule folds every vmap
+        # level into them, so the choice sees the whole batch of nested vmaps, e.g. seeds x
+        # queries).
+        wide = x.shape[-1] > MATMUL_PREFIX_MAX
+        if wide or (x.ndim > 1 and _members(x) < BIG_BATCH and loop_kernels_enabled()):
+            return _count_by_blocks(x)
+        return _count_by_matmul(x)    # one vector (a vector-matrix product) or a big batch
+
+    @count.def_vmap
+    def count_vmap(axis_size, in_batched, x):
+        return count(_broadcast_members(axis_size, in_batched[0], x)), True
+
+    return count
 
 
 def exclusive_count(x: jax.Array) -> jax.Array:
     """x bool (n,) -> int32 (n,): how many entries before each position are True."""
     if x.ndim != 1:
         raise ValueError(f"exclusive_count expects a vector, got shape {x.shape}")
-    return _exclusive_count(x)
+    return _exclusive_count_fn()(x)
 
 
 def nth_true(inclusive: jax.Array, r: jax.Array) -> jax.Array:
@@ -130,14 +136,19 @@ def _smallest_k_by_count(values: jax.Array, payload: jax.Array, k: int):
     # Non-negative floats order as their bits; -0.0 (sign bit set) is 0, NaN counts as +inf.
     bits = jnp.where(bits < 0, 0, jnp.minimum(bits, _INF_BITS))
 
-    def halve(lohi):                 # invariant: the k-th smallest key lies in [lo, hi]
+    # A cut key t with (#keys < t) <= k <= (#keys <= t), by halving [lo, hi], which always
+    # holds the k-th smallest key: a key with exactly k keys at or below it ends the search
+    # early (usually after ~15 of the 31 halvings: the k-th and (k+1)-th smallest keys of
+    # continuous values are far apart in bits). A loop of unknown trip count, which the
+    # compiler does not unroll (unrolled, the kernels took several times longer to compile).
+    def halve(lohi):
         lo, hi = lohi
         mid = lo + (hi - lo) // 2
-        enough = jnp.sum((bits <= mid).astype(jnp.int32)) >= k
-        return jnp.where(enough, lo, mid + 1), jnp.where(enough, mid, hi)
+        count = jnp.sum((bits <= mid).astype(jnp.int32))
+        enough = count >= k
+        return jnp.where(count == k, mid, jnp.where(enough, lo, mid + 1)), \
+            jnp.where(enough, mid, hi)
 
-    # Until lo == hi (31 halvings at most): a loop of unknown trip count, which the compiler
-    # does not unroll (unrolled, the kernels took several times longer to compile).
     _, kth = jax.lax.while_loop(lambda lh: lh[0] < lh[1], halve,
                                 (jnp.int32(0), jnp.int32(_INF_BITS)))
     below = bits < kth
@@ -176,13 +187,14 @@ def _smallest_k_fn(k: int):
     return smallest
 
 
-def smallest_k(values: jax.Array, payload: jax.Array, k: int):
+def smallest_k(values: jax.Array, payload: jax.Array, k: int, kernel_form: bool = True):
     """The k smallest of values float32 (n,) (+0.0 or more, or +inf: e.g. squared distances,
     which are never -0.0 or NaN, whose order here is unspecified; k <= n) with their payload (n,) -> (values (k,), payload (k,)).
 
     The same entries as ``lax.top_k(-values, k)`` (ties at the k-th value broken by lower
     position). Order: ascending (``top_k``) in vmapped batches of at least ``BIG_BATCH``,
-    else by position; callers must not depend on it.
+    else by position; callers must not depend on it. ``kernel_form=False``: always
+    ``lax.top_k`` (where a loop kernel would not pay: see ``hedger_jax.runtime``).
     """
     if values.ndim != 1 or payload.shape != values.shape:
         raise ValueError(f"smallest_k expects two vectors of one length, got shapes "
@@ -190,4 +202,6 @@ def smallest_k(values: jax.Array, payload: jax.Array, k: int):
     k = int(k)
     if not 0 < k <= values.shape[0]:
         raise ValueError(f"smallest_k needs 0 < k <= {values.shape[0]}, got k={k}")
+    if not kernel_form:
+        return _smallest_k_by_top_k(values, payload, k)
     return _smallest_k_fn(k)(values, payload)

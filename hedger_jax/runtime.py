@@ -31,23 +31,22 @@ agree to float32 rounding, not bit for bit: separately generated code may contra
 multiply-add differently (a prediction moved by at most 1 ULP in 189 of 4,096 queries).
 Only added for jaxlib versions known to have the flag (``_LEGACY_EMITTERS_JAXLIB``).
 
-4. **Loops as single kernels.** XLA's CPU runtime runs a program as a sequence of compiled
-kernels, one call per fused operation (~20-100 ns each), and a HEDGER training step is
-hundreds of tiny operations, so those calls were most of its cost. XLA can also compile a
+4. **Loops as single kernels (opt-in: ``HEDGER_JAX_LOOP_KERNELS=1``).** XLA's CPU runtime
+runs a program as a sequence of compiled kernels, one call per fused operation (~20-100 ns
+each), and a HEDGER training step is hundreds of tiny operations. XLA can also compile a
 whole ``while`` loop into one kernel ("small while loop hoisting"), by default only loops
-that touch under a few kilobytes. ``LOOP_KERNELS_FLAG`` lifts that size limit, so every
-loop that contains no custom call, sort or batched matrix product -- the episode rollout and
-the reverse replay, with their grid searches and local fits -- becomes one kernel. The
-library's own loops avoid those operations where it matters (``hedger_jax.kselect``: the
-grid scan's k nearest without ``lax.top_k``, its prefix counts without a batched matrix
-product, for vmapped batches of fewer than ``kselect.BIG_BATCH`` queries), while big
-batched programs (thousands of queries, evaluations' lanes) keep them and stay as they were:
-split over threads. Measured (mountain car, grid index, 2-core AMD EPYC VM): training 1.5x
-(discrete) and 2.5x (continuous) faster at 2e4 slots, 1.3x discrete at 3e5; see the README's
-Performance section. A loop kernel runs on one thread. Results agree to float32 rounding,
-not bit for bit, with programs compiled without the flag (as for ``LEGACY_EMITTERS_FLAG``).
-``loop_kernels_enabled`` says whether it is in effect (the grid scan then takes the
-kernel-friendly forms; without it, ``lax.top_k`` and the matrix product everywhere).
+that touch a few kilobytes. ``LOOP_KERNELS_FLAG`` lifts that size limit, so every loop with
+no custom call, sort or batched matrix product becomes one kernel. With a one-level grid
+index (mountain car up to ~1e5 slots) the library's scan then avoids those operations for
+single queries and vmapped batches below 64 (``hedger_jax.kselect``), so the episode rollout
+and the reverse replay become single kernels. Measured (2-core AMD EPYC VM): discrete
+mountain-car training at 2e4 slots 1.33x faster (paired in one process), continuous ~1.45x
+(separate benchmark runs); but the full continuous ``train`` took 27 s to compile instead of
+14 s, discrete 11 s instead of 7 s, so it is not the default. With several levels (the
+k nearest chosen on every scan trip) the sort-free selection cost as much as the kernels
+saved (0.93x at 3e5 slots, paired), so multi-level grids keep ``lax.top_k`` either way.
+Results agree to float32 rounding with programs compiled without the flag.
+``loop_kernels_enabled`` says whether it is in effect.
 
 ``apply_safe_cpu_flags`` appends these flags to ``XLA_FLAGS``. ``import hedger_jax`` and
 ``import envs`` call it, so they take effect as long as JAX has not yet started its CPU
@@ -77,6 +76,8 @@ _LEGACY_EMITTERS_JAXLIB = ((0, 10),)
 #: size limit (bytes an iteration touches, by XLA's cost model) of XLA's CPU loop hoisting.
 LOOP_KERNELS_OPTION = "xla_cpu_small_while_loop_byte_threshold"
 LOOP_KERNELS_FLAG = f"--xla_backend_extra_options={LOOP_KERNELS_OPTION}={1 << 50}"
+#: Set this environment variable to 1 (before ``import hedger_jax``) to add ``LOOP_KERNELS_FLAG``.
+LOOP_KERNELS_VARIABLE = "HEDGER_JAX_LOOP_KERNELS"
 #: jaxlib (major, minor) versions that know ``LOOP_KERNELS_FLAG`` (checked here).
 _LOOP_KERNELS_JAXLIB = ((0, 10),)
 #: Set this environment variable (to anything but "" or "0") to leave ``XLA_FLAGS`` alone.
@@ -93,17 +94,26 @@ def _jaxlib_version() -> Optional[Tuple[int, int]]:
         return None
 
 
-def cpu_flags(jaxlib_version: Optional[Tuple[int, int]] = None) -> List[str]:
-    """The flags ``apply_safe_cpu_flags`` adds for this jaxlib (default: the installed one)."""
+def cpu_flags(jaxlib_version: Optional[Tuple[int, int]] = None,
+              environ: Optional[MutableMapping[str, str]] = None) -> List[str]:
+    """The flags ``apply_safe_cpu_flags`` adds for this jaxlib (default: the installed one)
+    and environment (``LOOP_KERNELS_VARIABLE``; default ``os.environ``)."""
     v = _jaxlib_version() if jaxlib_version is None else tuple(jaxlib_version)
     flags = [SAFE_CPU_FLAG]
     if v in _YNN_FLAG_JAXLIB:
         flags.append(NO_YNN_REDUCE_FLAG)
     if v in _LEGACY_EMITTERS_JAXLIB:
         flags.append(LEGACY_EMITTERS_FLAG)
-    if v in _LOOP_KERNELS_JAXLIB:
+    if v in _LOOP_KERNELS_JAXLIB and loop_kernels_wanted(environ):
         flags.append(LOOP_KERNELS_FLAG)
     return flags
+
+
+def loop_kernels_wanted(environ: Optional[MutableMapping[str, str]] = None) -> bool:
+    """Whether ``LOOP_KERNELS_VARIABLE`` asks for ``LOOP_KERNELS_FLAG`` (opt-in, see the
+    module doc, item 4)."""
+    env = os.environ if environ is None else environ
+    return env.get(LOOP_KERNELS_VARIABLE, "").strip().lower() in ("1", "true", "on", "yes")
 
 
 #: Loops touching at least this many bytes per iteration count as "any size" for
@@ -140,7 +150,7 @@ def apply_safe_cpu_flags(environ: Optional[MutableMapping[str, str]] = None,
         return False
     flags = env.get("XLA_FLAGS", "")
     added = False
-    for flag in cpu_flags(jaxlib_version):
+    for flag in cpu_flags(jaxlib_version, env):
         if flag.split("=")[0] not in flags:
             flags = f"{flags} {flag}".strip()
             added = True

@@ -1,16 +1,16 @@
 """hedger_jax.kselect: the k smallest without sort or custom call, and prefix counts, against
 NumPy references; which form each batch size takes; and the training loops they let XLA
 compile into single kernels."""
+import os
+import subprocess
+import sys
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from hedger_jax import kselect
-from hedger_jax.config import HedgerConfig
-from hedger_jax.memory import add_points, init_memory, refresh_index
-from hedger_jax.runtime import loop_kernels_enabled
-from hedger_jax.train import Transition, train_episode
 
 
 def _reference(values: np.ndarray, k: int) -> np.ndarray:
@@ -56,15 +56,16 @@ def test_smallest_k_matches_a_stable_sort(shape):
             np.testing.assert_array_equal(gv, row[pos], err_msg=name)
 
 
-def test_small_batches_avoid_top_k_and_big_ones_use_it():
-    """With loop kernels on (``import hedger_jax`` sets the flag), single vectors and vmapped
+def test_small_batches_avoid_top_k_and_big_ones_use_it(monkeypatch):
+    """With loop kernels on (``HEDGER_JAX_LOOP_KERNELS=1``), single vectors and vmapped
     batches below ``BIG_BATCH`` compile without XLA's TopK custom call or a sort; bigger
-    batches (nested vmaps counted together) use top_k; without loop kernels top_k always."""
-    assert loop_kernels_enabled()
-    f = lambda v: kselect.smallest_k(v, jnp.arange(96, dtype=jnp.int32), 16)   # noqa: E731
-    x = jnp.zeros((96,), jnp.float32)
+    batches (nested vmaps counted together) use top_k; without loop kernels, or with
+    ``kernel_form=False``, top_k always."""
+    monkeypatch.setattr(kselect, "loop_kernels_enabled", lambda: True)
+    kselect._smallest_k_fn.cache_clear()
 
-    def hlo(depth, shape):
+    def hlo(depth, shape, **kw):
+        f = lambda v: kselect.smallest_k(v, jnp.arange(96, dtype=jnp.int32), 16, **kw)  # noqa
         return _vmapped(f, depth).lower(jnp.zeros(shape, jnp.float32)).compile().as_text()
 
     for depth, shape in ((0, (96,)), (1, (11, 96)), (2, (4, 8, 96))):
@@ -72,13 +73,11 @@ def test_small_batches_avoid_top_k_and_big_ones_use_it():
         assert "TopK" not in text and " sort(" not in text, shape
     for depth, shape in ((1, (64, 96)), (2, (8, 11, 96))):
         assert "TopK" in hlo(depth, shape), shape
-    old = kselect.loop_kernels_enabled
-    try:
-        kselect.loop_kernels_enabled = lambda: False
-        fresh = lambda v: kselect.smallest_k(v, jnp.arange(96, dtype=jnp.int32), 16)  # noqa
-        assert "TopK" in jax.jit(fresh).lower(x).compile().as_text()   # (a new trace)
-    finally:
-        kselect.loop_kernels_enabled = old
+    assert "TopK" in hlo(0, (96,), kernel_form=False)
+    monkeypatch.setattr(kselect, "loop_kernels_enabled", lambda: False)
+    kselect._smallest_k_fn.cache_clear()
+    assert "TopK" in hlo(0, (96,))
+    kselect._smallest_k_fn.cache_clear()
 
 
 @pytest.mark.parametrize("n", [5, 64, 96, 300])
@@ -113,28 +112,43 @@ def test_bad_arguments_are_refused():
         kselect.exclusive_count(jnp.zeros((2, 8), bool))
 
 
-@pytest.mark.parametrize("levels", [1, 2])
-def test_training_replay_compiles_into_one_kernel(levels):
-    """The point of kselect: the reverse replay of an episode over a grid-indexed memory (one
-    level: rare top_k on overflow; two levels: top_k on every trip) has no TopK custom call,
-    so XLA compiles its loop into a single kernel ("xla_cpu_small_call")."""
-    cfg = HedgerConfig(state_dim=2, action_dim=1, capacity=3000, bandwidth=0.05,
-                       max_neighbours=16, neighbour_index="grid", index_levels=levels)
-    rng = np.random.default_rng(5)
-    pts = rng.random((1500, 3)).astype(np.float32)
-    mem = refresh_index(cfg, add_points(cfg, init_memory(cfg), jnp.asarray(pts[:, :2]),
-                                        jnp.asarray(pts[:, 2:]), jnp.asarray(pts[:, 0])),
-                        force=True)
-    T = 6
-    ep = Transition(obs=jnp.asarray(rng.random((T, 2)), jnp.float32),
-                    action=jnp.asarray(rng.random((T, 1)), jnp.float32),
-                    reward=jnp.full((T,), -1.0), next_obs=jnp.asarray(rng.random((T, 2)),
-                                                                      jnp.float32),
-                    terminated=jnp.zeros((T,), bool), valid=jnp.ones((T,), bool))
-    text = jax.jit(lambda m, e: train_episode(cfg, m, e)[0]).lower(mem, ep).compile().as_text()
-    assert "TopK" not in text
-    assert 'xla_cpu_small_call="true"' in text
-    # The replay's own loop (a scan over the episode) is one of the kernels.
-    calls = [line for line in text.splitlines() if "xla_cpu_small_call" in line]
-    assert any("jit(<lambda>)/while" in line and "body" not in line.split("op_name=")[-1]
-               for line in calls), calls[:3]
+_REPLAY_SCRIPT = """
+import jax, jax.numpy as jnp, numpy as np
+from hedger_jax.config import HedgerConfig
+from hedger_jax.memory import add_points, init_memory, refresh_index
+from hedger_jax.runtime import loop_kernels_enabled
+from hedger_jax.train import Transition, train_episode
+assert loop_kernels_enabled()
+cfg = HedgerConfig(state_dim=2, action_dim=1, capacity=3000, bandwidth=0.05,
+                   max_neighbours=16, neighbour_index="grid", index_levels=1)
+rng = np.random.default_rng(5)
+pts = rng.random((1500, 3)).astype(np.float32)
+mem = refresh_index(cfg, add_points(cfg, init_memory(cfg), jnp.asarray(pts[:, :2]),
+                                    jnp.asarray(pts[:, 2:]), jnp.asarray(pts[:, 0])), force=True)
+T = 6
+f32 = lambda a: jnp.asarray(a, jnp.float32)
+ep = Transition(obs=f32(rng.random((T, 2))), action=f32(rng.random((T, 1))),
+                reward=jnp.full((T,), -1.0), next_obs=f32(rng.random((T, 2))),
+                terminated=jnp.zeros((T,), bool), valid=jnp.ones((T,), bool))
+fn = jax.jit(lambda m, e: train_episode(cfg, m, e)[0])
+text = fn.lower(mem, ep).compile().as_text()
+calls = [l for l in text.splitlines() if 'xla_cpu_small_call="true"' in l and " call(" in l]
+outer = [l for l in calls if "jit(<lambda>)/while" in l
+         and "body" not in l.split("op_name=")[-1].split('"')[1]]
+print("TOPK", "TopK" in text, "KERNELS", len(calls), "REPLAY", len(outer))
+"""
+
+
+def test_training_replay_compiles_into_one_kernel_with_loop_kernels():
+    """The point of kselect: with ``HEDGER_JAX_LOOP_KERNELS=1`` (a fresh process: XLA reads
+    its flags once), the reverse replay of an episode over a one-level grid has no TopK
+    custom call, so XLA compiles the replay's own loop into a single kernel
+    ("xla_cpu_small_call")."""
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    env["HEDGER_JAX_LOOP_KERNELS"] = "1"
+    out = subprocess.run([sys.executable, "-c", _REPLAY_SCRIPT], env=env, capture_output=True,
+                         text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    words = out.stdout.split()
+    got = dict(zip(words[::2], words[1::2]))
+    assert got["TOPK"] == "False" and int(got["KERNELS"]) > 0 and int(got["REPLAY"]) >= 1, got

@@ -11,8 +11,11 @@ V010, V011 = (0, 10), (0, 11)
 
 
 def test_flags_depend_on_the_jaxlib_version():
-    assert cpu_flags(V010) == [SAFE_CPU_FLAG, NO_YNN_REDUCE_FLAG, LEGACY_EMITTERS_FLAG,
-                               LOOP_KERNELS_FLAG]
+    assert cpu_flags(V010, {}) == [SAFE_CPU_FLAG, NO_YNN_REDUCE_FLAG, LEGACY_EMITTERS_FLAG]
+    # Opt-in: loops compiled into single kernels.
+    assert cpu_flags(V010, {"HEDGER_JAX_LOOP_KERNELS": "1"}) == [
+        SAFE_CPU_FLAG, NO_YNN_REDUCE_FLAG, LEGACY_EMITTERS_FLAG, LOOP_KERNELS_FLAG]
+    assert cpu_flags(V011, {"HEDGER_JAX_LOOP_KERNELS": "1"}) == [SAFE_CPU_FLAG]
     # An unknown XLA flag aborts the process: only add it where it is known to exist.
     assert cpu_flags(V011) == [SAFE_CPU_FLAG]
     assert cpu_flags((0, 4)) == [SAFE_CPU_FLAG]
@@ -21,7 +24,7 @@ def test_flags_depend_on_the_jaxlib_version():
 def test_adds_flags_to_empty_environment_once():
     env = {}
     assert apply_safe_cpu_flags(env, V010) is True
-    want = f"{SAFE_CPU_FLAG} {NO_YNN_REDUCE_FLAG} {LEGACY_EMITTERS_FLAG} {LOOP_KERNELS_FLAG}"
+    want = f"{SAFE_CPU_FLAG} {NO_YNN_REDUCE_FLAG} {LEGACY_EMITTERS_FLAG}"
     assert env["XLA_FLAGS"] == want
     assert apply_safe_cpu_flags(env, V010) is False          # idempotent
     assert env["XLA_FLAGS"] == want
@@ -35,7 +38,7 @@ def test_keeps_existing_flags():
     apply_safe_cpu_flags(env, V010)
     assert env["XLA_FLAGS"].split() == ["--xla_force_host_platform_device_count=2",
                                         SAFE_CPU_FLAG, NO_YNN_REDUCE_FLAG,
-                                        LEGACY_EMITTERS_FLAG, LOOP_KERNELS_FLAG]
+                                        LEGACY_EMITTERS_FLAG]
 
 
 def test_user_setting_of_the_same_flag_wins():
@@ -46,13 +49,14 @@ def test_user_setting_of_the_same_flag_wins():
     assert apply_safe_cpu_flags(env, V010) is True
     assert env["XLA_FLAGS"].split() == ["--xla_cpu_experimental_ynn_fusion_type="
                                         "+LIBRARY_FUSION_TYPE_DOT", SAFE_CPU_FLAG,
-                                        LEGACY_EMITTERS_FLAG, LOOP_KERNELS_FLAG]
+                                        LEGACY_EMITTERS_FLAG]
     env = {"XLA_FLAGS": "--xla_cpu_use_fusion_emitters=true"}         # the user's choice wins
     assert apply_safe_cpu_flags(env, V010) is True
     assert env["XLA_FLAGS"].split() == ["--xla_cpu_use_fusion_emitters=true", SAFE_CPU_FLAG,
-                                        NO_YNN_REDUCE_FLAG, LOOP_KERNELS_FLAG]
+                                        NO_YNN_REDUCE_FLAG]
     # Any backend extra option of the user's: theirs alone (XLA keeps one list).
-    env = {"XLA_FLAGS": "--xla_backend_extra_options=xla_cpu_disable_loop_unrolling=true"}
+    env = {"XLA_FLAGS": "--xla_backend_extra_options=xla_cpu_disable_loop_unrolling=true",
+           "HEDGER_JAX_LOOP_KERNELS": "1"}
     assert apply_safe_cpu_flags(env, V010) is True
     assert env["XLA_FLAGS"].split()[0] == "--xla_backend_extra_options=xla_cpu_disable_loop_unrolling=true"
     assert LOOP_KERNELS_FLAG not in env["XLA_FLAGS"]
