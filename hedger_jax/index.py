@@ -36,7 +36,8 @@ Design (all shapes static, so everything jits and vmaps; N = capacity, d = dim, 
   order, their keys, and ``starts``: the first sorted position of every cell. Build: a sort.
 * **Recent writes.** Points written since the last merge are not in the tables. The first
   R of them (``recent_length``: ``index_recent``, or 1,024-8,192 growing with the capacity)
-  are kept in a list sorted by level-0 key (an O(R) insertion per write); a query finds the
+  are kept in a list sorted by level-0 key (an O(R) insertion per write; with loop kernels,
+  ``hedger_jax.runtime``, a loop moving only the entries after the new one); a query finds the
   parts of its level-0 rows in that list by binary search. Writes beyond R are scanned by
   brute force (exact, slower). ``refresh`` merges the writes into the tables -- O(N + cells)
   per level, so only once 3R / 4 have accumulated (``merge_threshold``: a few episodes) or
@@ -75,6 +76,7 @@ from jax.custom_batching import custom_vmap
 from hedger_jax.fusion import computed_once
 from hedger_jax.kselect import exclusive_count, nth_true, smallest_k
 from hedger_jax.loops import batch_cond
+from hedger_jax.runtime import loop_kernels_enabled
 
 #: Largest number of grid cells per level (size of a ``starts`` table); see ``max_cells``.
 _MAX_CELLS = 1 << 22
@@ -501,8 +503,8 @@ def build(config, points: jax.Array, size: jax.Array) -> GridIndex:
 def note_write(config, index: GridIndex, z: jax.Array, slot: jax.Array,
                did_write: jax.Array) -> GridIndex:
     """Record one write (bool ``did_write``) of point z (d,) to ``slot``: the first R since the
-    last merge are inserted in level-0 key order into the recent columns (O(R)), later ones
-    appended after them (O(1)); past N writes the index is saturated."""
+    last merge are inserted in level-0 key order into the recent columns (``_insert_recent``),
+    later ones appended after them (O(1)); past N writes the index is saturated."""
     geo = geometry(config)
     R = geo.recent
     n = config.capacity
@@ -519,17 +521,9 @@ def note_write(config, index: GridIndex, z: jax.Array, slot: jax.Array,
         # Computed once: fused into the O(R) passes below, XLA recomputed the key's ~30
         # scalar operations for every one of the R entries (``hedger_jax.fusion``).
         key = computed_once(cell_keys(geo.levels[0], z))
-        pos = jnp.sum((rkeys <= key).astype(jnp.int32))      # after equal keys: write order
-        j = jnp.arange(R, dtype=jnp.int32)
         ins = computed_once(did_write & (n_new < R))
-
-        def shift(a, x):                 # a (..., R): insert x at pos, shift the rest right
-            right = jnp.concatenate([a[..., :1], a[..., :-1]], axis=-1)
-            return jnp.where(ins, jnp.where(j < pos, a, jnp.where(j == pos, x, right)), a)
-
-        rkeys = shift(rkeys, key)
-        order = order.at[L, :R].set(shift(order[L, :R], slot))
-        spoints = spoints.at[L, :, :R].set(shift(spoints[L, :, :R], z[:, None]))
+        rkeys, order, spoints = _insert_recent(L, rkeys, order, spoints, key, slot, z, n_new,
+                                               ins)
         b = jnp.arange(geo.n_buckets + 1, dtype=jnp.int32)
         rstarts = rstarts + (ins & (b > key // geo.bucket)).astype(jnp.int32)
     # Writes R .. N-1 since the merge: appended in write order (one column).
@@ -539,6 +533,105 @@ def note_write(config, index: GridIndex, z: jax.Array, slot: jax.Array,
     n_new = jnp.where(did_write, jnp.minimum(n_new + 1, n + 1), n_new)
     return index._replace(order=order, spoints=spoints, n_new=n_new.astype(jnp.int32),
                           rkeys=rkeys, rstarts=rstarts)
+
+
+def _insert_by_shift(L: int, rkeys, order, spoints, key, slot, z, count, ins):
+    """``_insert_recent`` by O(R) passes: every recent column j > pos takes column j - 1
+    (static slices and selects: one form for any batch)."""
+    R = rkeys.shape[-1]
+    pos = jnp.sum((rkeys <= key).astype(jnp.int32))
+    j = jnp.arange(R, dtype=jnp.int32)
+
+    def shift(a, x):                 # a (..., R): insert x at pos, shift the rest right
+        right = jnp.concatenate([a[..., :1], a[..., :-1]], axis=-1)
+        return jnp.where(ins, jnp.where(j < pos, a, jnp.where(j == pos, x, right)), a)
+
+    rkeys = shift(rkeys, key)
+    order = order.at[L, :R].set(shift(order[L, :R], slot))
+    spoints = spoints.at[L, :, :R].set(shift(spoints[L, :, :R], z[:, None]))
+    return rkeys, order, spoints
+
+
+#: Columns moved per step of ``_insert_by_blocks``.
+_INSERT_BLOCK = 16
+
+
+def _insert_by_blocks(L: int, rkeys, order, spoints, key, slot, z, count, ins):
+    """``_insert_recent`` moving only the live columns pos .. count - 1 (one right), in blocks
+    of ``_INSERT_BLOCK`` from the top down, in place: a loop of ~(count - pos) / 16 steps
+    instead of O(R) passes over the recent columns (and XLA's copies of them), pos found by
+    a binary search. For a single write (the training step); columns above ``count`` (not
+    live) are left as they are."""
+    R = rkeys.shape[-1]
+    pos = jnp.int32(0)                           # entries <= key (rkeys ascending)
+    step = 1 << (R.bit_length() - 1)
+    while step:
+        cand = jnp.minimum(pos + step, R)
+        pos = jnp.where(rkeys[cand - 1] <= key, cand, pos)
+        step >>= 1
+    B = min(_INSERT_BLOCK, R)
+    d = spoints.shape[-2]
+    lane = jnp.arange(B, dtype=jnp.int32)
+
+    def step(c):
+        top, rkeys, order, spoints = c
+        s = jnp.maximum(top - B, 0)              # block [s, s + B); columns >= top are done
+        j = s + lane
+        below = jnp.maximum(s - 1, 0)            # column s - 1 (unused when s == 0: pos >= 0)
+
+        def moved(win, prev, x):                 # win (..., B), prev (..., 1), x (..., 1)
+            right = jnp.concatenate([prev, win[..., :-1]], axis=-1)
+            new = jnp.where(j > pos, right, jnp.where(j == pos, x, win))
+            return jnp.where(j < top, new, win)  # a clamped first block overlaps a done one
+
+        zero = jnp.int32(0)
+        rkeys = jax.lax.dynamic_update_slice(
+            rkeys, moved(jax.lax.dynamic_slice(rkeys, (s,), (B,)),
+                         jax.lax.dynamic_slice(rkeys, (below,), (1,)), key[None]), (s,))
+        o_win = jax.lax.dynamic_slice(order, (L, s), (1, B))
+        o_prev = jax.lax.dynamic_slice(order, (L, below), (1, 1))
+        order = jax.lax.dynamic_update_slice(order, moved(o_win, o_prev, slot[None, None]),
+                                             (jnp.int32(L), s))
+        p_win = jax.lax.dynamic_slice(spoints, (L, zero, s), (1, d, B))
+        p_prev = jax.lax.dynamic_slice(spoints, (L, zero, below), (1, d, 1))
+        spoints = jax.lax.dynamic_update_slice(spoints, moved(p_win, p_prev, z[None, :, None]),
+                                               (jnp.int32(L), zero, s))
+        return s, rkeys, order, spoints
+
+    top = jnp.where(ins, jnp.minimum(count, R - 1) + 1, pos)    # not inserting: no step
+    _, rkeys, order, spoints = jax.lax.while_loop(lambda c: c[0] > pos, step,
+                                                  (top, rkeys, order, spoints))
+    return rkeys, order, spoints
+
+
+@functools.lru_cache(maxsize=None)
+def _insert_recent_fn(L: int):
+    @custom_vmap
+    def insert(rkeys, order, spoints, key, slot, z, count, ins):
+        return _insert_by_blocks(L, rkeys, order, spoints, key, slot, z, count, ins)
+
+    @insert.def_vmap
+    def insert_vmap(axis_size, in_batched, *args):
+        # Batched writes (vmapped seeds): the O(R) passes, one form for every member (a loop
+        # would run until the member with the most columns to move is done, with gathers).
+        args = [a if b else jnp.broadcast_to(a, (axis_size,) + a.shape)
+                for a, b in zip(args, in_batched)]
+        out = jax.vmap(functools.partial(_insert_by_shift, L))(*args)
+        return out, (True, True, True)
+
+    return insert
+
+
+def _insert_recent(L: int, rkeys, order, spoints, key, slot, z, count, ins):
+    """Insert a write (key (), slot (), point z (d,)) into the recent list (keys rkeys (R,),
+    ascending; row L of order (L + 1, N) and spoints (L + 1, d, N)) after the entries whose
+    key is <= key (so equal keys stay in write order), shifting the later ones one column
+    right, when ``ins`` (count: live entries before the insertion, < R when ``ins``).
+    Returns (rkeys, order, spoints)."""
+    args = (rkeys, order, spoints, key, slot, z, count, ins)
+    if loop_kernels_enabled():
+        return _insert_recent_fn(L)(*args)
+    return _insert_by_shift(L, *args)
 
 
 def _put(dst: jax.Array, pos: jax.Array, src: jax.Array, sorted_: bool) -> jax.Array:

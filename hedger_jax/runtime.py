@@ -45,6 +45,11 @@ mountain-car training at 2e4 slots 1.33x faster (paired in one process), continu
 14 s, discrete 11 s instead of 7 s, so it is not the default. With several levels (the
 k nearest chosen on every scan trip) the sort-free selection cost as much as the kernels
 saved (0.93x at 3e5 slots, paired), so multi-level grids keep ``lax.top_k`` either way.
+With the flag a single write also inserts into the index's sorted recent list by a loop that
+moves only the entries after it, in place (``index._insert_by_blocks``), instead of O(R)
+passes whose slices XLA copied with ``memmove`` inside the kernels (17 % of a discrete
+training step's time at 2e4 slots, profiled): training paired 1.04-1.24x discrete /
+1.05x continuous at 2e4 slots, 1.27-1.38x discrete at 3e5.
 Results agree to float32 rounding with programs compiled without the flag.
 ``loop_kernels_enabled`` says whether it is in effect.
 

@@ -804,3 +804,90 @@ def test_recent_buckets_spanning_two_rows_give_each_write_once():
         assert len(set(real.tolist())) == len(real), f"query {i}: repeated slot {np.sort(real)}"
     a_ = _assert_same(cb, mb, cg, mg, np.asarray(z))
     assert a_.mask.sum(1).mean() > 3
+
+
+def _insert_reference(rkeys, order, spoints, L, key, slot, z, count, ins):
+    """NumPy: the sorted insertion of one write into the recent list (after equal keys), the
+    live columns 0 .. count shifted; columns above count and rows other than L untouched."""
+    rkeys, order, spoints = rkeys.copy(), order.copy(), spoints.copy()
+    if ins:
+        pos = int(np.searchsorted(rkeys[:count], key, side="right"))
+        rkeys[:count + 1] = np.insert(rkeys[:count], pos, key)
+        order[L, :count + 1] = np.insert(order[L, :count], pos, slot)
+        spoints[L, :, :count + 1] = np.insert(spoints[L, :, :count], pos, z, axis=1)
+    return rkeys, order, spoints
+
+
+@pytest.mark.parametrize("R, L, d", [(1, 0, 2), (7, 1, 3), (16, 0, 3), (33, 2, 1), (1024, 1, 3)])
+def test_recent_insertion_by_blocks_matches_numpy(R, L, d):
+    """The loop-kernel form of the recent list's sorted insertion (moves only the live
+    columns, 16 per step, top down; finds the place by a binary search) against NumPy's
+    insert: duplicate keys (a new write goes after equal ones), an empty and an almost full
+    list, a write that is not inserted."""
+    rng = np.random.default_rng(R + 10 * L)
+    N = 3 * R + 5
+    fn = jax.jit(functools.partial(gi._insert_by_blocks, L))
+    counts = sorted({0, R - 1, *rng.integers(0, R, 6).tolist()})
+    for trial, count in enumerate(counts * 2):
+        sentinel = 99
+        rkeys = np.full(R, sentinel, np.int32)
+        rkeys[:count] = np.sort(rng.integers(0, 12, count))
+        order = rng.integers(0, N, (L + 1, N)).astype(np.int32)
+        spoints = rng.normal(size=(L + 1, d, N)).astype(np.float32)
+        key = np.int32(rng.integers(0, 12) if trial % 3 else (rkeys[0] if count else 0))
+        slot = np.int32(rng.integers(0, N))
+        z = rng.normal(size=d).astype(np.float32)
+        ins = bool(trial != 3)
+        got = fn(rkeys, order, spoints, key, slot, z, np.int32(count), np.bool_(ins))
+        want = _insert_reference(rkeys, order, spoints, L, key, slot, z, count, ins)
+        for g, w, name in zip(got, want, ("rkeys", "order", "spoints")):
+            np.testing.assert_array_equal(np.asarray(g), w, err_msg=f"{name}, count {count}")
+
+
+def test_recent_insertion_vmapped_uses_the_shift_form_and_agrees(monkeypatch):
+    """Under vmap (seeds) the insertion takes the O(R) shift form (one form for every member):
+    same live columns as each member's own loop-kernel insertion."""
+    calls = []
+    shift = gi._insert_by_shift
+    monkeypatch.setattr(gi, "_insert_by_shift", lambda *a: calls.append(1) or shift(*a))
+    rng = np.random.default_rng(3)
+    S, R, L, d, N = 5, 40, 1, 3, 90
+    counts = np.array([0, 3, 17, 39, 20], np.int32)
+    rkeys = np.full((S, R), 50, np.int32)
+    for s, c in enumerate(counts):
+        rkeys[s, :c] = np.sort(rng.integers(0, 9, c))
+    order = rng.integers(0, N, (S, L + 1, N)).astype(np.int32)
+    spoints = rng.normal(size=(S, L + 1, d, N)).astype(np.float32)
+    keys = rng.integers(0, 9, S).astype(np.int32)
+    slots = rng.integers(0, N, S).astype(np.int32)
+    zs = rng.normal(size=(S, d)).astype(np.float32)
+    ins = np.array([True, True, False, True, True])
+    got = jax.jit(jax.vmap(gi._insert_recent_fn(L)))(rkeys, order, spoints, keys, slots, zs,
+                                                      counts, ins)
+    assert calls, "the vmapped insertion did not take the shift form"
+    for s in range(S):
+        want = _insert_reference(rkeys[s], order[s], spoints[s], L, keys[s], slots[s], zs[s],
+                                 int(counts[s]), bool(ins[s]))
+        live = int(counts[s]) + 1 if ins[s] else R
+        np.testing.assert_array_equal(np.asarray(got[0][s]), want[0])
+        np.testing.assert_array_equal(np.asarray(got[1][s])[:, :live], want[1][:, :live])
+        np.testing.assert_array_equal(np.asarray(got[2][s])[..., :live], want[2][..., :live])
+
+
+def test_writes_with_the_loop_kernel_insertion_stay_exact(monkeypatch):
+    """With loop kernels on, single writes use ``_insert_by_blocks``: the grid index still
+    returns brute force's neighbours through a ring buffer, skipped writes, merges, a
+    recent list that overflows (appends after it) and a saturated index."""
+    calls = []
+    blocks = gi._insert_by_blocks
+    monkeypatch.setattr(gi, "loop_kernels_enabled", lambda: True)
+    monkeypatch.setattr(gi, "_insert_by_blocks", lambda *a: calls.append(1) or blocks(*a))
+    mg = _run_writes("overwrite_oldest", 310, 1200, [150, 90, 400, 30, 500, 30], seed=14)
+    assert calls and int(mg.size) == 310
+    rng = np.random.default_rng(19)
+    cb, cg = _pair(capacity=130, full_policy="overwrite_oldest", index_recent=16,
+                   max_neighbours=8, bandwidth=0.08)
+    pts = _uniform(rng, 300)
+    vals = rng.normal(size=300).astype(np.float32)
+    mb, mg = _write_all(cb, pts, vals), _write_all(cg, pts, vals)
+    _assert_same(cb, mb, cg, mg, np.concatenate([_uniform(rng, 30), pts[-10:]]))
