@@ -612,6 +612,9 @@ def _insert_recent_fn(L: int):
 
     @insert.def_vmap
     def insert_vmap(axis_size, in_batched, *args):
+        if axis_size == 1:               # one seed: its own loop
+            one = [a[0] if b else a for a, b in zip(args, in_batched)]
+            return tuple(x[None] for x in insert(*one)), (True, True, True)
         # Batched writes (vmapped seeds): the O(R) passes, one form for every member (a loop
         # would run until the member with the most columns to move is done, with gathers).
         args = [a if b else jnp.broadcast_to(a, (axis_size,) + a.shape)

@@ -846,7 +846,8 @@ def test_recent_insertion_by_blocks_matches_numpy(R, L, d):
 
 def test_recent_insertion_vmapped_uses_the_shift_form_and_agrees(monkeypatch):
     """Under vmap (seeds) the insertion takes the O(R) shift form (one form for every member):
-    same live columns as each member's own loop-kernel insertion."""
+    same live columns as each member's own loop-kernel insertion; a vmap of one member takes
+    the loop."""
     calls = []
     shift = gi._insert_by_shift
     monkeypatch.setattr(gi, "_insert_by_shift", lambda *a: calls.append(1) or shift(*a))
@@ -872,6 +873,18 @@ def test_recent_insertion_vmapped_uses_the_shift_form_and_agrees(monkeypatch):
         np.testing.assert_array_equal(np.asarray(got[0][s]), want[0])
         np.testing.assert_array_equal(np.asarray(got[1][s])[:, :live], want[1][:, :live])
         np.testing.assert_array_equal(np.asarray(got[2][s])[..., :live], want[2][..., :live])
+    # One member (a sweep of one seed): its own loop, not the shift form.
+    calls.clear()
+    blocks = []
+    by_blocks = gi._insert_by_blocks
+    monkeypatch.setattr(gi, "_insert_by_blocks", lambda *a: blocks.append(1) or by_blocks(*a))
+    one = jax.jit(jax.vmap(gi._insert_recent_fn(L)))(*(x[3:4] for x in (
+        rkeys, order, spoints, keys, slots, zs, counts, ins)))
+    assert blocks and not calls
+    want = _insert_reference(rkeys[3], order[3], spoints[3], L, keys[3], slots[3], zs[3],
+                             int(counts[3]), True)
+    for g, w in zip(one, want):
+        np.testing.assert_array_equal(np.asarray(g[0]), w)
 
 
 def test_writes_with_the_loop_kernel_insertion_stay_exact(monkeypatch):
