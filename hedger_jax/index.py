@@ -543,7 +543,11 @@ def _insert_by_shift(L: int, rkeys, order, spoints, key, slot, z, count, ins):
     j = jnp.arange(R, dtype=jnp.int32)
 
     def shift(a, x):                 # a (..., R): insert x at pos, shift the rest right
-        right = jnp.concatenate([a[..., :1], a[..., :-1]], axis=-1)
+        # a[j - 1] by a pad, not a concatenation of slices: XLA's CPU code copied that with
+        # memmove, which ran slowly enough to take 11 % of a discrete training step at 2e4
+        # slots (AMD EPYC; profiled). Paired: training 1.16-1.27x at 2e4, 1.40x at 3e5.
+        right = jax.lax.pad(a[..., :-1], jnp.zeros((), a.dtype),
+                            [(0, 0, 0)] * (a.ndim - 1) + [(1, 0, 0)])
         return jnp.where(ins, jnp.where(j < pos, a, jnp.where(j == pos, x, right)), a)
 
     rkeys = shift(rkeys, key)
