@@ -4,9 +4,9 @@ backend can compile -- with the loop around them -- into one kernel.
 Why. XLA's CPU runtime runs a program as a sequence of small compiled kernels ("thunks"),
 paying ~20-100 ns per kernel call; a HEDGER training step is hundreds of tiny kernels, so
 that overhead is most of its cost. XLA can instead compile a whole ``while`` loop into a
-single kernel (its "small while loop hoisting", enabled for loops of any size by the opt-in
-flag of ``hedger_jax.runtime``, ``HEDGER_JAX_LOOP_KERNELS=1``), but only a loop that
-contains no custom call, no sort and no batched matrix product. ``lax.top_k`` is a custom call on the CPU, and the grid scan's
+single kernel (its "small while loop hoisting", enabled for loops of any size by a flag
+that ``hedger_jax.runtime`` adds by default on the CPU; ``HEDGER_JAX_LOOP_KERNELS=0`` leaves it
+out), but only a loop that contains no custom call, no sort and no batched matrix product. ``lax.top_k`` is a custom call on the CPU, and the grid scan's
 prefix count a (batched) matrix product. So for vmapped batches of fewer than
 ``BIG_BATCH`` queries (the training step's 1-11 queries, an evaluation's lanes) and for
 single queries:
@@ -18,9 +18,10 @@ single queries:
 * ``exclusive_count`` sums within blocks of 16 and over the block totals by masked
   reductions (an associative scan's ladder of slices made the kernels slow to compile).
 
-Without the flag, and for multi-level grids (``smallest_k(kernel_form=False)``: selecting
-on every scan trip, the sort-free form cost as much as the kernels saved), ``lax.top_k``
-and the matrix product are used. Big vmapped batches (e.g. ``predict`` over thousands of
+Without the flag (and with ``smallest_k(kernel_form=False)``), ``lax.top_k`` and the matrix
+product are used. Multi-level grids, which select on every scan trip, use the sort-free form
+too since LLVM's unroll threshold is lowered with the flag (before, it cost as much as the
+kernels saved). Big vmapped batches (e.g. ``predict`` over thousands of
 queries) keep them too: they are not compiled into one kernel anyway (XLA splits their large
 operations over threads), and there those are faster (measured in ``benchmarks``).
 """
@@ -43,10 +44,22 @@ MATMUL_PREFIX_MAX = 256
 _INF_BITS = 0x7F800000
 
 
-@functools.lru_cache(maxsize=None)
-def _strictly_upper(n: int) -> np.ndarray:
+def _before(n: int) -> jax.Array:
+    """bool (n, n): entry (i, j) is True when j < i.
+
+    Built in the program (iota and compare; XLA folds it into a constant), not as a NumPy
+    array: an array constant inside a ``custom_vmap`` function becomes an operand of the
+    custom_vmap call, which an enclosing ``lax.cond`` with a batched predicate (one per
+    vmapped member) broadcasts -- and JAX's custom_vmap refuses a batched constant (vmapped
+    continuous-action training with the grid index failed to trace that way)."""
+    i = jax.lax.broadcasted_iota(jnp.int32, (n, n), 0)
+    j = jax.lax.broadcasted_iota(jnp.int32, (n, n), 1)
+    return j < i
+
+
+def _strictly_upper(n: int) -> jax.Array:
     """float32 (n, n) with 1 above the diagonal: x @ it = exclusive prefix sums of x."""
-    return np.triu(np.ones((n, n), np.float32), 1)
+    return _before(n).T.astype(jnp.float32)
 
 
 def _count_by_matmul(x: jax.Array) -> jax.Array:
@@ -71,9 +84,9 @@ def _count_by_blocks(x: jax.Array) -> jax.Array:
     m = -(-n // b)
     xi = jnp.pad(x.astype(jnp.int32), [(0, 0)] * (x.ndim - 1) + [(0, m * b - n)])
     xb = xi.reshape(x.shape[:-1] + (m, b))
-    tri_b = np.arange(b)[None, :] < np.arange(b)[:, None]            # (i, j): j before i
+    tri_b = _before(b)                                                 # (i, j): j before i
     within = jnp.sum(jnp.where(tri_b, xb[..., None, :], 0), axis=-1)   # (..., m, b)
-    tri_m = np.arange(m)[None, :] < np.arange(m)[:, None]
+    tri_m = _before(m)
     totals = jnp.sum(xb, axis=-1)                                       # (..., m)
     before = jnp.sum(jnp.where(tri_m, totals[..., None, :], 0), axis=-1)
     out = within + before[..., None]

@@ -56,6 +56,37 @@ def test_smallest_k_matches_a_stable_sort(shape):
             np.testing.assert_array_equal(gv, row[pos], err_msg=name)
 
 
+@pytest.mark.parametrize("kernels", [True, False])
+@pytest.mark.parametrize("members", [3, 70])
+def test_inside_a_vmapped_cond_with_a_batched_predicate(monkeypatch, kernels, members):
+    """``lax.cond`` with one predicate per vmapped member runs both branches on operands it
+    broadcasts to the batch -- constants the branches close over included. A custom_vmap
+    function that closes over an array constant then fails to trace (JAX refuses a batched
+    constant): vmapped continuous-action training with the grid index did, through the
+    exploration's cond. Every form (sort-free and top_k, block and matrix counts) traces
+    there and gives the members' own answers."""
+    monkeypatch.setattr(kselect, "loop_kernels_enabled", lambda: kernels)
+    rng = np.random.default_rng(members)
+    values = jnp.asarray(rng.random((members, 96)).astype(np.float32))
+    pred = jnp.asarray(rng.random(members) < 0.5)
+
+    def f(p, v):
+        return jax.lax.cond(
+            p, lambda v: (kselect.smallest_k(v, jnp.arange(96), 5)[1].sum(),
+                          kselect.exclusive_count(v < 0.5)),
+            lambda v: (jnp.int32(-1), jnp.zeros(96, jnp.int32)), v)
+
+    got_sum, got_count = jax.jit(jax.vmap(f))(pred, values)
+    for i in range(members):
+        row = np.asarray(values[i])
+        if bool(pred[i]):
+            assert int(got_sum[i]) == int(np.sort(np.argsort(row, kind="stable")[:5]).sum())
+            want = np.concatenate([[0], np.cumsum(row < 0.5)[:-1]])
+            np.testing.assert_array_equal(np.asarray(got_count[i]), want)
+        else:
+            assert int(got_sum[i]) == -1
+
+
 def test_small_batches_avoid_top_k_and_big_ones_use_it(monkeypatch):
     """With loop kernels on (``HEDGER_JAX_LOOP_KERNELS=1``), single vectors and vmapped
     batches below ``BIG_BATCH`` compile without XLA's TopK custom call or a sort; bigger

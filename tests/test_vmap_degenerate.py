@@ -178,6 +178,32 @@ def _train_finite(mem, zq):
     assert -1.0 <= float(a[0]) <= 1.0
 
 
+def test_vmapped_continuous_grid_training_equals_separate_runs():
+    """``jax.vmap(train)`` over seeds, continuous actions, grid index: traces (it failed to:
+    the exploration's ``lax.cond`` broadcast an array constant into a custom_vmap function,
+    see ``kselect._before``) and gives each seed's own run."""
+    import envs
+    from hedger_jax.agent import RunConfig, make_train
+
+    env = envs.make("mountain_car_continuous")
+    cfg = HedgerConfig.for_env(env, capacity=600, neighbour_index="grid")
+    run = RunConfig(n_blocks=1, episodes_per_block=2, eval_episodes=2, eval_max_steps=30,
+                    train_max_steps=40)
+    train = make_train(env, cfg, run).train
+    keys = jax.random.split(jax.random.PRNGKey(3), 2)
+    batched = jax.jit(jax.vmap(train))(keys)
+    single = jax.jit(train)
+    for i in range(2):
+        for x, y in zip(jax.tree_util.tree_leaves(single(keys[i])),
+                        jax.tree_util.tree_leaves(batched)):
+            x, y = np.asarray(x), np.asarray(y)[i]
+            if np.issubdtype(x.dtype, np.floating):
+                np.testing.assert_allclose(x, y, rtol=1e-5, atol=1e-6)
+            else:
+                np.testing.assert_array_equal(x, y)
+    assert int(np.asarray(batched[0].memory.size).min()) > 0
+
+
 def test_empty_memory():
     mem = _mem_g(np.zeros((0, 2)), [])
     for zq in ([0.0, 0.0], [0.5, 0.5]):
