@@ -49,7 +49,8 @@ from hedger_jax.memory import (init_memory, largest_array_bytes, refresh_index, 
                                select_neighbours)
 from hedger_jax.index import geometry, merge_threshold  # noqa: E402
 from hedger_jax.predict import predict_scaled  # noqa: E402
-from hedger_jax.runtime import jit_serial_codegen, serial_codegen_wanted  # noqa: E402
+from hedger_jax.runtime import (jit_serial_codegen, loop_kernels_enabled,  # noqa: E402
+                                serial_codegen_wanted)
 from numpy_baseline import NumpyHedger, time_episodes  # noqa: E402
 
 DISCRETE = ((-1.0,), (0.0,), (1.0,))
@@ -387,7 +388,9 @@ def markdown(results) -> str:
            f"Machine: {m['cpu_count']} CPU cores ({m.get('cpu', 'CPU not recorded')}), "
            f"{m['platform']}, jax {m['jax']} "
            f"({m['backend']}), load average at start {m['load_start']}, at end "
-           f"{m.get('load_end', '-')}. Mode: {'quick' if results['quick'] else 'full'}.", "",
+           f"{m.get('load_end', '-')}. Mode: {'quick' if results['quick'] else 'full'}. "
+           f"Loop kernels (hedger_jax.runtime): {m.get('loop_kernels', 'not recorded')}; "
+           f"XLA_FLAGS: `{m.get('xla_flags', 'not recorded')}`.", "",
            "Baseline = float64 NumPy + scipy cKDTree HEDGER in the same process "
            "(benchmarks/numpy_baseline.py, single-threaded). Ratio = ours / baseline. "
            "Rates are per CPU-second of this process (time.process_time, all threads: the "
@@ -479,7 +482,9 @@ def main(argv=None):
                "machine": {"cpu_count": os.cpu_count(), "cpu": cpu_model(),
                            "platform": platform.platform(),
                            "jax": jax.__version__, "backend": jax.default_backend(),
-                           "load_start": os.getloadavg()},
+                           "load_start": os.getloadavg(),
+                           "xla_flags": os.environ.get("XLA_FLAGS", ""),
+                           "loop_kernels": loop_kernels_enabled()},
                "maxrss_mb": {"start": maxrss_mb()}}
     if args.quick:
         caps, batch = [1_000, 10_000, 100_000], 1024

@@ -44,8 +44,9 @@ Design (all shapes static, so everything jits and vmaps; N = capacity, d = dim, 
   when forced.
 * **Scan.** The query's candidates are the concatenation of its table rows, its recent-list
   rows and the brute-force writes; they are scanned in chunks (``chunk_width``) by a
-  ``lax.while_loop`` keeping the k nearest so far (``lax.top_k``; with one level, candidates
-  that all fit are appended without it), so any occupancy is exact -- a full or
+  ``lax.while_loop`` keeping the k nearest so far (``kselect.smallest_k``: ``lax.top_k``,
+  or a sort-free selection that loop kernels can hold; with one level, candidates that all
+  fit are appended without it), so any occupancy is exact -- a full or
   overflowing cell just costs more trips. A candidate's column in the index arrays follows
   from its position in the sequence (``_candidate_columns``: a compare-and-count over the
   segment starts, or a binary search for some vmapped batch sizes, whichever XLA's CPU
@@ -536,8 +537,10 @@ def note_write(config, index: GridIndex, z: jax.Array, slot: jax.Array,
 
 
 def _insert_by_shift(L: int, rkeys, order, spoints, key, slot, z, count, ins):
-    """``_insert_recent`` by O(R) passes: every recent column j > pos takes column j - 1
-    (static slices and selects: one form for any batch)."""
+    """``_insert_recent`` by O(R) passes: every recent column pos < j <= count takes column
+    j - 1 (static slices and selects: one form for any batch). Columns above ``count`` (not
+    live) are left as they are, as ``_insert_by_blocks`` leaves them: vmapped seeds (this
+    form) and single runs (that one) give bit-identical memories."""
     R = rkeys.shape[-1]
     pos = jnp.sum((rkeys <= key).astype(jnp.int32))
     j = jnp.arange(R, dtype=jnp.int32)
@@ -548,7 +551,8 @@ def _insert_by_shift(L: int, rkeys, order, spoints, key, slot, z, count, ins):
         # slots (AMD EPYC; profiled). Paired: training 1.16-1.27x at 2e4, 1.40x at 3e5.
         right = jax.lax.pad(a[..., :-1], jnp.zeros((), a.dtype),
                             [(0, 0, 0)] * (a.ndim - 1) + [(1, 0, 0)])
-        return jnp.where(ins, jnp.where(j < pos, a, jnp.where(j == pos, x, right)), a)
+        return jnp.where(ins & (j <= count),
+                         jnp.where(j < pos, a, jnp.where(j == pos, x, right)), a)
 
     rkeys = shift(rkeys, key)
     order = order.at[L, :R].set(shift(order[L, :R], slot))
@@ -565,13 +569,20 @@ def _insert_by_blocks(L: int, rkeys, order, spoints, key, slot, z, count, ins):
     of ``_INSERT_BLOCK`` from the top down, in place: a loop of ~(count - pos) / 16 steps
     instead of O(R) passes over the recent columns (and XLA's copies of them), pos found by
     a binary search. For a single write (the training step); columns above ``count`` (not
-    live) are left as they are."""
-    R = rkeys.shape[-1]
+    live) are left as they are. rkeys, order and spoints may carry leading axes of size 1 (a
+    vmap of one member, ``_insert_recent_fn``), updated in place as they are: squeezed, the
+    loop's results were copied back into the batched arrays at every write (~26 us per
+    training step at 2e4 slots)."""
+    lead = rkeys.ndim - 1                        # leading singleton axes
+    ones = (1,) * lead
+    zeros = (jnp.int32(0),) * lead
+    flat_keys = rkeys.reshape(rkeys.shape[lead:])
+    R = flat_keys.shape[-1]
     pos = jnp.int32(0)                           # entries <= key (rkeys ascending)
     step = 1 << (R.bit_length() - 1)
     while step:
         cand = jnp.minimum(pos + step, R)
-        pos = jnp.where(rkeys[cand - 1] <= key, cand, pos)
+        pos = jnp.where(flat_keys[cand - 1] <= key, cand, pos)
         step >>= 1
     B = min(_INSERT_BLOCK, R)
     d = spoints.shape[-2]
@@ -588,18 +599,19 @@ def _insert_by_blocks(L: int, rkeys, order, spoints, key, slot, z, count, ins):
             new = jnp.where(j > pos, right, jnp.where(j == pos, x, win))
             return jnp.where(j < top, new, win)  # a clamped first block overlaps a done one
 
-        zero = jnp.int32(0)
+        zero, row = jnp.int32(0), jnp.int32(L)
         rkeys = jax.lax.dynamic_update_slice(
-            rkeys, moved(jax.lax.dynamic_slice(rkeys, (s,), (B,)),
-                         jax.lax.dynamic_slice(rkeys, (below,), (1,)), key[None]), (s,))
-        o_win = jax.lax.dynamic_slice(order, (L, s), (1, B))
-        o_prev = jax.lax.dynamic_slice(order, (L, below), (1, 1))
-        order = jax.lax.dynamic_update_slice(order, moved(o_win, o_prev, slot[None, None]),
-                                             (jnp.int32(L), s))
-        p_win = jax.lax.dynamic_slice(spoints, (L, zero, s), (1, d, B))
-        p_prev = jax.lax.dynamic_slice(spoints, (L, zero, below), (1, d, 1))
-        spoints = jax.lax.dynamic_update_slice(spoints, moved(p_win, p_prev, z[None, :, None]),
-                                               (jnp.int32(L), zero, s))
+            rkeys, moved(jax.lax.dynamic_slice(rkeys, zeros + (s,), ones + (B,)),
+                         jax.lax.dynamic_slice(rkeys, zeros + (below,), ones + (1,)),
+                         key.reshape(ones + (1,))), zeros + (s,))
+        o_win = jax.lax.dynamic_slice(order, zeros + (row, s), ones + (1, B))
+        o_prev = jax.lax.dynamic_slice(order, zeros + (row, below), ones + (1, 1))
+        order = jax.lax.dynamic_update_slice(
+            order, moved(o_win, o_prev, slot.reshape(ones + (1, 1))), zeros + (row, s))
+        p_win = jax.lax.dynamic_slice(spoints, zeros + (row, zero, s), ones + (1, d, B))
+        p_prev = jax.lax.dynamic_slice(spoints, zeros + (row, zero, below), ones + (1, d, 1))
+        spoints = jax.lax.dynamic_update_slice(
+            spoints, moved(p_win, p_prev, z.reshape(ones + (1, d, 1))), zeros + (row, zero, s))
         return s, rkeys, order, spoints
 
     top = jnp.where(ins, jnp.minimum(count, R - 1) + 1, pos)    # not inserting: no step
@@ -616,13 +628,13 @@ def _insert_recent_fn(L: int):
 
     @insert.def_vmap
     def insert_vmap(axis_size, in_batched, *args):
-        if axis_size == 1:               # one seed: its own loop
-            one = [a[0] if b else a for a, b in zip(args, in_batched)]
-            return tuple(x[None] for x in insert(*one)), (True, True, True)
-        # Batched writes (vmapped seeds): the O(R) passes, one form for every member (a loop
-        # would run until the member with the most columns to move is done, with gathers).
         args = [a if b else jnp.broadcast_to(a, (axis_size,) + a.shape)
                 for a, b in zip(args, in_batched)]
+        if axis_size == 1:               # one seed: its own loop, on the arrays as they are
+            small = [a[0] for a in args[3:]]                  # key, slot, z, count, ins
+            return _insert_by_blocks(L, *args[:3], *small), (True, True, True)
+        # Batched writes (vmapped seeds): the O(R) passes, one form for every member (a loop
+        # would run until the member with the most columns to move is done, with gathers).
         out = jax.vmap(functools.partial(_insert_by_shift, L))(*args)
         return out, (True, True, True)
 
@@ -845,17 +857,22 @@ def _scan(config, geo: Geometry, index: GridIndex, head, z, lv, tab_start, tab_l
             # among the recent writes).
             ok = ok & ~(in_tab & (jax.lax.rem(slot - h0 + n, n) < n_new))
 
+        # ``smallest_k``: with loop kernels (``hedger_jax.runtime``), single queries and
+        # vmapped batches below 64 select without ``top_k``, so the training loops stay
+        # single kernels with several levels too (training at 1e5 / 3e5 / 1e6 slots paired
+        # 1.42x / 1.31x / 1.17x discrete, 1.16x / 1.34x continuous at 1e5 / 3e5; it was
+        # 0.93x at 3e5 before LLVM's unroll threshold was lowered, so top_k was kept then).
         def top(best):
             return smallest_k(jnp.concatenate([best[0], jnp.where(ok, d2, jnp.inf)]),
-                              jnp.concatenate([best[1], slot]), k, kernel_form=L == 1)
+                              jnp.concatenate([best[1], slot]), k)
 
         if L > 1:                     # rows of ~3k+ candidates: the k nearest must be chosen
-            if fresh:   # nothing kept yet: top_k over the new candidates only (k fewer
+            if fresh:   # nothing kept yet: the k nearest of the new candidates only (k fewer
                 #             values: batched selection 1.14-1.19x at 1e5-1e6, measured;
                 #             packing the candidates within the radius into half the width
                 #             first was slower)
                 dd = _first_cut(geo, k)(jnp.where(ok, d2, jnp.inf), r2)
-                return (p0 + width,) + smallest_k(dd, slot, k, kernel_form=False)
+                return (p0 + width,) + smallest_k(dd, slot, k)
             return (p0 + width,) + top((best_d2, best_idx))
         # One level (small memories): usually every candidate within the radius fits in the
         # k kept entries, whose finite ones are a prefix; then the new ones are appended

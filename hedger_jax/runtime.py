@@ -1,6 +1,6 @@
 """XLA CPU runtime settings: flags that keep vmapped HEDGER programs from hanging, from
-handing small reductions to a slow library kernel and from compiling slowly, and
-``serial_codegen`` (no splitting of tiny gathers from a large memory across threads).
+handing small reductions to a slow library kernel and from compiling slowly, and that compile
+their loops into single kernels; and ``serial_codegen`` (no splitting of tiny gathers from a large memory across threads).
 
 1. **Deadlock.** With jax/jaxlib 0.10.2 on the CPU, XLA's concurrency-optimised scheduler can
 produce a program that deadlocks: every XLA worker thread waits for work, the host waits for
@@ -31,26 +31,34 @@ agree to float32 rounding, not bit for bit: separately generated code may contra
 multiply-add differently (a prediction moved by at most 1 ULP in 189 of 4,096 queries).
 Only added for jaxlib versions known to have the flag (``_LEGACY_EMITTERS_JAXLIB``).
 
-4. **Loops as single kernels (opt-in: ``HEDGER_JAX_LOOP_KERNELS=1``).** XLA's CPU runtime
-runs a program as a sequence of compiled kernels, one call per fused operation (~20-100 ns
-each), and a HEDGER training step is hundreds of tiny operations. XLA can also compile a
-whole ``while`` loop into one kernel ("small while loop hoisting"), by default only loops
-that touch a few kilobytes. ``LOOP_KERNELS_FLAG`` lifts that size limit, so every loop with
-no custom call, sort or batched matrix product becomes one kernel. With a one-level grid
-index (mountain car up to ~1e5 slots) the library's scan then avoids those operations for
-single queries and vmapped batches below 64 (``hedger_jax.kselect``), so the episode rollout
-and the reverse replay become single kernels. Measured (2-core AMD EPYC VM): discrete
-mountain-car training at 2e4 slots 1.33x faster (paired in one process), continuous ~1.45x
-(separate benchmark runs); but the full continuous ``train`` took 27 s to compile instead of
-14 s, discrete 11 s instead of 7 s, so it is not the default. With several levels (the
-k nearest chosen on every scan trip) the sort-free selection cost as much as the kernels
-saved (0.93x at 3e5 slots, paired), so multi-level grids keep ``lax.top_k`` either way.
-With the flag a single write also inserts into the index's sorted recent list by a loop that
-moves only the entries after it, in place (``index._insert_by_blocks``), instead of O(R)
-passes whose slices XLA copied with ``memmove`` inside the kernels (17 % of a discrete
-training step's time at 2e4 slots, profiled): training paired 1.04-1.24x discrete /
-1.05x continuous at 2e4 slots, 1.27-1.38x discrete at 3e5.
-Results agree to float32 rounding with programs compiled without the flag.
+4. **Loops as single kernels (default on CPU-only installs; ``HEDGER_JAX_LOOP_KERNELS=0``
+turns it off).** XLA's CPU runtime runs a program as a sequence of compiled kernels, one call
+per fused operation (~20-100 ns each), and a HEDGER training step is hundreds of tiny
+operations. XLA can also compile a whole ``while`` loop into one kernel ("small while loop
+hoisting"), by default only loops that touch a few kilobytes. ``LOOP_KERNELS_FLAG`` lifts
+that size limit, so every loop with no custom call, sort or batched matrix product becomes
+one kernel. With a one-level grid index (mountain car up to ~1e5 slots) the library's scan
+then avoids those operations for single queries and vmapped batches below 64
+(``hedger_jax.kselect``), so the episode rollout and the reverse replay become single
+kernels. The same flag sets LLVM's loop-unroll threshold to ``LOOP_UNROLL_THRESHOLD`` (60
+instead of 300): LLVM fully unrolled the kernels' many short loops, which made the
+continuous ``train`` compile in ~20 s instead of ~14 s, and the smaller code also runs
+faster. Measured (2-core AMD EPYC VM, separate processes, since XLA reads its flags once):
+mountain-car training at 2e4 slots, discrete 52,000-73,000 points/s with the flag,
+40,000-42,000 with loop kernels at LLVM's threshold, 33,000-37,000 without loop kernels;
+continuous 11,600-13,300 / 9,900-10,700 / 6,500-7,600; unroll thresholds 0 / 30 / 100 / 150
+were no better than 60. Full continuous ``train`` trace + compile: 14.4-16.6 s with the
+flag, 18.1-22.7 s at LLVM's threshold, 12.3-15.0 s without loop kernels. Multi-level grids
+(3e5 slots) train at the same speed either way (14,500-18,600 points/s discrete in all
+three settings): selecting the k nearest on every scan trip, the sort-free form cost as much
+as the kernels saved, so they keep ``lax.top_k``. A single write also inserts into the
+index's sorted recent list by a loop that moves only the entries after it, in place
+(``index._insert_by_blocks``), instead of O(R) passes whose slices XLA copied with
+``memmove`` inside the kernels (17 % of a discrete training step's time at 2e4 slots,
+profiled). Results agree to float32 rounding with programs compiled without the flag.
+It is not added where JAX may use an accelerator (``JAX_PLATFORMS`` names one, or a GPU/TPU
+plugin is installed; ``HEDGER_JAX_LOOP_KERNELS=1`` adds it anyway): the unroll threshold is
+an LLVM setting of the whole process, measured only for the CPU's code.
 ``loop_kernels_enabled`` says whether it is in effect.
 
 ``apply_safe_cpu_flags`` appends these flags to ``XLA_FLAGS``. ``import hedger_jax`` and
@@ -80,11 +88,23 @@ _LEGACY_EMITTERS_JAXLIB = ((0, 10),)
 #: Compile every eligible ``while`` loop into one kernel (see the module doc, item 4): the
 #: size limit (bytes an iteration touches, by XLA's cost model) of XLA's CPU loop hoisting.
 LOOP_KERNELS_OPTION = "xla_cpu_small_while_loop_byte_threshold"
-LOOP_KERNELS_FLAG = f"--xla_backend_extra_options={LOOP_KERNELS_OPTION}={1 << 50}"
-#: Set this environment variable to 1 (before ``import hedger_jax``) to add ``LOOP_KERNELS_FLAG``.
+#: LLVM's loop-unroll cost threshold (an LLVM command-line option, which XLA passes on from
+#: ``xla_backend_extra_options``; LLVM's default at -O3 is 300) and the value set with the
+#: loop kernels: their code unrolled less compiles faster and runs faster (module doc, item 4).
+LOOP_UNROLL_OPTION = "-unroll-threshold"
+LOOP_UNROLL_THRESHOLD = 60
+LOOP_KERNELS_FLAG = (f"--xla_backend_extra_options={LOOP_KERNELS_OPTION}={1 << 50},"
+                     f"{LOOP_UNROLL_OPTION}={LOOP_UNROLL_THRESHOLD}")
+#: ``HEDGER_JAX_LOOP_KERNELS``: "0" leaves ``LOOP_KERNELS_FLAG`` out, "1" adds it; unset (or
+#: "auto") adds it unless JAX may run on an accelerator (``_accelerator_possible``).
 LOOP_KERNELS_VARIABLE = "HEDGER_JAX_LOOP_KERNELS"
 #: jaxlib (major, minor) versions that know ``LOOP_KERNELS_FLAG`` (checked here).
 _LOOP_KERNELS_JAXLIB = ((0, 10),)
+#: Modules whose presence means a JAX accelerator plugin is installed (PJRT plugins live in
+#: the ``jax_plugins`` namespace package; the CUDA and ROCm plugins also have modules of their
+#: own; TPUs use ``libtpu``).
+_ACCELERATOR_MODULES = ("jax_plugins", "jax_cuda12_plugin", "jax_cuda13_plugin",
+                        "jax_rocm60_plugin", "jax_rocm7_plugin", "libtpu")
 #: Set this environment variable (to anything but "" or "0") to leave ``XLA_FLAGS`` alone.
 OPT_OUT_VARIABLE = "HEDGER_JAX_KEEP_XLA_FLAGS"
 
@@ -114,11 +134,36 @@ def cpu_flags(jaxlib_version: Optional[Tuple[int, int]] = None,
     return flags
 
 
-def loop_kernels_wanted(environ: Optional[MutableMapping[str, str]] = None) -> bool:
-    """Whether ``LOOP_KERNELS_VARIABLE`` asks for ``LOOP_KERNELS_FLAG`` (opt-in, see the
-    module doc, item 4)."""
+def _accelerator_possible(environ: Optional[MutableMapping[str, str]] = None) -> bool:
+    """Whether JAX may run this process on something other than the CPU: ``JAX_PLATFORMS``
+    names another platform, or (unset) an accelerator plugin is installed. Checked without
+    importing anything (``importlib.util.find_spec``)."""
+    import importlib.util
+
     env = os.environ if environ is None else environ
-    return env.get(LOOP_KERNELS_VARIABLE, "").strip().lower() in ("1", "true", "on", "yes")
+    platforms = [p.strip().lower() for p in env.get("JAX_PLATFORMS", "").split(",") if p.strip()]
+    if platforms:
+        return any(p != "cpu" for p in platforms)
+    for name in _ACCELERATOR_MODULES:
+        try:
+            if importlib.util.find_spec(name) is not None:
+                return True
+        except (ImportError, ValueError):
+            continue
+    return False
+
+
+def loop_kernels_wanted(environ: Optional[MutableMapping[str, str]] = None) -> bool:
+    """Whether to add ``LOOP_KERNELS_FLAG`` (module doc, item 4): ``LOOP_KERNELS_VARIABLE``
+    "1" / "0" forces it on / off; unset or "auto", on unless an accelerator may be used (its
+    LLVM unroll setting is for the CPU's code; on an accelerator the flag only costs)."""
+    env = os.environ if environ is None else environ
+    value = env.get(LOOP_KERNELS_VARIABLE, "").strip().lower()
+    if value in ("1", "true", "on", "yes"):
+        return True
+    if value in ("0", "false", "off", "no"):
+        return False
+    return not _accelerator_possible(env)
 
 
 #: Loops touching at least this many bytes per iteration count as "any size" for

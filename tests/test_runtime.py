@@ -3,54 +3,78 @@ import os
 import subprocess
 import sys
 
+from hedger_jax import runtime
 from hedger_jax.runtime import (LEGACY_EMITTERS_FLAG, LOOP_KERNELS_FLAG, LOOP_KERNELS_OPTION,
-                                NO_YNN_REDUCE_FLAG, OPT_OUT_VARIABLE, SAFE_CPU_FLAG,
-                                apply_safe_cpu_flags, cpu_flags, loop_kernels_enabled)
+                                LOOP_UNROLL_OPTION, LOOP_UNROLL_THRESHOLD, NO_YNN_REDUCE_FLAG,
+                                OPT_OUT_VARIABLE, SAFE_CPU_FLAG, apply_safe_cpu_flags,
+                                cpu_flags, loop_kernels_enabled)
 
 V010, V011 = (0, 10), (0, 11)
+CPU = {"JAX_PLATFORMS": "cpu"}          # a CPU-only process, whatever plugins are installed
+BASE = [SAFE_CPU_FLAG, NO_YNN_REDUCE_FLAG, LEGACY_EMITTERS_FLAG]
 
 
 def test_flags_depend_on_the_jaxlib_version():
-    assert cpu_flags(V010, {}) == [SAFE_CPU_FLAG, NO_YNN_REDUCE_FLAG, LEGACY_EMITTERS_FLAG]
-    # Opt-in: loops compiled into single kernels.
-    assert cpu_flags(V010, {"HEDGER_JAX_LOOP_KERNELS": "1"}) == [
-        SAFE_CPU_FLAG, NO_YNN_REDUCE_FLAG, LEGACY_EMITTERS_FLAG, LOOP_KERNELS_FLAG]
-    assert cpu_flags(V011, {"HEDGER_JAX_LOOP_KERNELS": "1"}) == [SAFE_CPU_FLAG]
+    assert cpu_flags(V010, CPU) == BASE + [LOOP_KERNELS_FLAG]
     # An unknown XLA flag aborts the process: only add it where it is known to exist.
-    assert cpu_flags(V011) == [SAFE_CPU_FLAG]
-    assert cpu_flags((0, 4)) == [SAFE_CPU_FLAG]
+    assert cpu_flags(V011, CPU) == [SAFE_CPU_FLAG]
+    assert cpu_flags(V011, {"HEDGER_JAX_LOOP_KERNELS": "1"}) == [SAFE_CPU_FLAG]
+    assert cpu_flags((0, 4), CPU) == [SAFE_CPU_FLAG]
+
+
+def test_loop_kernels_default_on_for_the_cpu_only():
+    assert LOOP_KERNELS_FLAG.endswith(f"{LOOP_UNROLL_OPTION}={LOOP_UNROLL_THRESHOLD}")
+    for off in ("0", "false", "OFF", " no "):
+        assert cpu_flags(V010, dict(CPU, HEDGER_JAX_LOOP_KERNELS=off)) == BASE
+    for on in ("1", "true", "yes"):
+        assert cpu_flags(V010, {"JAX_PLATFORMS": "cuda", "HEDGER_JAX_LOOP_KERNELS": on}) == \
+            BASE + [LOOP_KERNELS_FLAG]
+    # Unset or "auto": not where JAX may run on an accelerator.
+    assert cpu_flags(V010, {"JAX_PLATFORMS": "cuda"}) == BASE
+    assert cpu_flags(V010, {"JAX_PLATFORMS": "cpu,tpu", "HEDGER_JAX_LOOP_KERNELS": "auto"}) == BASE
+    assert cpu_flags(V010, {"JAX_PLATFORMS": " cpu "}) == BASE + [LOOP_KERNELS_FLAG]
+
+
+def test_accelerator_plugins_are_detected_without_importing_them(monkeypatch):
+    monkeypatch.setattr(runtime, "_ACCELERATOR_MODULES", ("no_such_module_hj", "json"))
+    assert runtime._accelerator_possible({}) is True            # "json": found
+    assert cpu_flags(V010, {}) == BASE
+    assert cpu_flags(V010, CPU) == BASE + [LOOP_KERNELS_FLAG]   # JAX_PLATFORMS decides
+    monkeypatch.setattr(runtime, "_ACCELERATOR_MODULES", ("no_such_module_hj", "a.b.c"))
+    assert runtime._accelerator_possible({}) is False
+    assert cpu_flags(V010, {}) == BASE + [LOOP_KERNELS_FLAG]
 
 
 def test_adds_flags_to_empty_environment_once():
-    env = {}
+    env = dict(CPU)
     assert apply_safe_cpu_flags(env, V010) is True
-    want = f"{SAFE_CPU_FLAG} {NO_YNN_REDUCE_FLAG} {LEGACY_EMITTERS_FLAG}"
+    want = " ".join(BASE + [LOOP_KERNELS_FLAG])
     assert env["XLA_FLAGS"] == want
     assert apply_safe_cpu_flags(env, V010) is False          # idempotent
     assert env["XLA_FLAGS"] == want
-    env = {}
+    env = dict(CPU)
     assert apply_safe_cpu_flags(env, V011) is True
     assert env["XLA_FLAGS"] == SAFE_CPU_FLAG
 
 
 def test_keeps_existing_flags():
-    env = {"XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
+    env = dict(CPU, XLA_FLAGS="--xla_force_host_platform_device_count=2")
     apply_safe_cpu_flags(env, V010)
-    assert env["XLA_FLAGS"].split() == ["--xla_force_host_platform_device_count=2",
-                                        SAFE_CPU_FLAG, NO_YNN_REDUCE_FLAG,
-                                        LEGACY_EMITTERS_FLAG]
+    assert env["XLA_FLAGS"].split() == ["--xla_force_host_platform_device_count=2"] + BASE + [
+        LOOP_KERNELS_FLAG]
 
 
 def test_user_setting_of_the_same_flag_wins():
     env = {"XLA_FLAGS": "--xla_cpu_enable_concurrency_optimized_scheduler=true"}
     assert apply_safe_cpu_flags(env, V011) is False
     assert env["XLA_FLAGS"] == "--xla_cpu_enable_concurrency_optimized_scheduler=true"
-    env = {"XLA_FLAGS": "--xla_cpu_experimental_ynn_fusion_type=+LIBRARY_FUSION_TYPE_DOT"}
+    off = {"HEDGER_JAX_LOOP_KERNELS": "0"}
+    env = dict(off, XLA_FLAGS="--xla_cpu_experimental_ynn_fusion_type=+LIBRARY_FUSION_TYPE_DOT")
     assert apply_safe_cpu_flags(env, V010) is True
     assert env["XLA_FLAGS"].split() == ["--xla_cpu_experimental_ynn_fusion_type="
                                         "+LIBRARY_FUSION_TYPE_DOT", SAFE_CPU_FLAG,
                                         LEGACY_EMITTERS_FLAG]
-    env = {"XLA_FLAGS": "--xla_cpu_use_fusion_emitters=true"}         # the user's choice wins
+    env = dict(off, XLA_FLAGS="--xla_cpu_use_fusion_emitters=true")   # the user's choice wins
     assert apply_safe_cpu_flags(env, V010) is True
     assert env["XLA_FLAGS"].split() == ["--xla_cpu_use_fusion_emitters=true", SAFE_CPU_FLAG,
                                         NO_YNN_REDUCE_FLAG]
@@ -60,6 +84,7 @@ def test_user_setting_of_the_same_flag_wins():
     assert apply_safe_cpu_flags(env, V010) is True
     assert env["XLA_FLAGS"].split()[0] == "--xla_backend_extra_options=xla_cpu_disable_loop_unrolling=true"
     assert LOOP_KERNELS_FLAG not in env["XLA_FLAGS"]
+    assert "unroll-threshold" not in env["XLA_FLAGS"]
 
 
 def test_loop_kernels_enabled_reads_the_threshold():
@@ -95,6 +120,15 @@ def test_import_hedger_jax_and_envs_apply_the_flags_before_the_backend_starts():
             "assert float(jnp.ones(2).sum()) == 2.0")
     assert SAFE_CPU_FLAG in _flags_after(code).split()
     assert _flags_after("import hedger_jax", {OPT_OUT_VARIABLE: "1"}) == ""
+    # The loop kernels: on by default in a CPU-only process (XLA and LLVM accept the options:
+    # an unknown one would abort the computation), off with HEDGER_JAX_LOOP_KERNELS=0.
+    code = ("import hedger_jax, jax, jax.numpy as jnp\n"
+            "from hedger_jax.runtime import loop_kernels_enabled\n"
+            "x = jax.lax.fori_loop(0, 5, lambda i, x: x + i, jnp.float32(0))\n"
+            "assert float(x) == 10.0 and loop_kernels_enabled()")
+    assert LOOP_KERNELS_FLAG in _flags_after(code, CPU).split()
+    assert LOOP_KERNELS_FLAG not in _flags_after("import hedger_jax",
+                                                 {"HEDGER_JAX_LOOP_KERNELS": "0"}).split()
 
 
 # ---------------------------------------------------------------- serial code generation
