@@ -47,11 +47,11 @@ faster. Measured (2-core AMD EPYC VM, separate processes, since XLA reads its fl
 mountain-car training at 2e4 slots, discrete 52,000-73,000 points/s with the flag,
 40,000-42,000 with loop kernels at LLVM's threshold, 33,000-37,000 without loop kernels;
 continuous 11,600-13,300 / 9,900-10,700 / 6,500-7,600; unroll thresholds 0 / 30 / 100 / 150
-were no better than 60. Full continuous ``train`` trace + compile: 14.4-16.6 s with the
-flag, 18.1-22.7 s at LLVM's threshold, 12.3-15.0 s without loop kernels. Multi-level grids
-(3e5 slots) train at the same speed either way (14,500-18,600 points/s discrete in all
-three settings): selecting the k nearest on every scan trip, the sort-free form cost as much
-as the kernels saved, so they keep ``lax.top_k``. A single write also inserts into the
+were no better than 60. Full continuous ``train`` trace + compile: 12.4-16.6 s with the
+flag, 18.1-22.7 s at LLVM's threshold, 11.0-15.0 s without loop kernels. Multi-level grids
+(1e5 slots and up) select the k nearest on every scan trip; at LLVM's threshold the
+sort-free form cost as much as the kernels saved (0.93x at 3e5), with the flag it gains
+1.16-1.42x (paired, ``index._scan``), so they use it too. A single write also inserts into the
 index's sorted recent list by a loop that moves only the entries after it, in place
 (``index._insert_by_blocks``), instead of O(R) passes whose slices XLA copied with
 ``memmove`` inside the kernels (17 % of a discrete training step's time at 2e4 slots,
