@@ -7,6 +7,7 @@ import textwrap
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from hedger_jax.sharding import shard_seeds
 
@@ -31,19 +32,32 @@ _SCRIPT = textwrap.dedent("""
         return {"value": v, "n": n, "size": mem.size}
 
     keys = jax.random.split(jax.random.PRNGKey(0), 4)
-    out = shard_seeds(train, keys)
-    assert len(out["value"].sharding.device_set) == 2, out["value"].sharding
     ref = jax.jit(jax.vmap(train))(keys)                      # unsharded reference
-    assert out["value"].shape == (4, 8) and out["size"].shape == (4,)
-    # Two differently partitioned programs may fuse the float32 sums of the local fit in a
-    # different order: equal to float32 round-off, not bit for bit.
-    np.testing.assert_allclose(np.asarray(out["value"]), np.asarray(ref["value"]), rtol=2e-5,
-                               atol=1e-7)
-    np.testing.assert_array_equal(np.asarray(out["n"]), np.asarray(ref["n"]))
+    single = [jax.jit(train)(k) for k in keys]                # one seed at a time
+    for mode in ("auto", "map", "vmap"):
+        out = shard_seeds(train, keys, per_device=mode)
+        assert len(out["value"].sharding.device_set) == 2, out["value"].sharding
+        assert out["value"].shape == (4, 8) and out["size"].shape == (4,)
+        # Differently compiled programs may fuse the float32 sums of the local fit in a
+        # different order: equal to float32 round-off, not bit for bit.
+        np.testing.assert_allclose(np.asarray(out["value"]), np.asarray(ref["value"]),
+                                   rtol=2e-5, atol=1e-7)
+        np.testing.assert_array_equal(np.asarray(out["n"]), np.asarray(ref["n"]))
+        if mode != "vmap":   # "auto" is "map" on CPU devices: each seed the one-seed program
+            for i, s in enumerate(single):
+                np.testing.assert_allclose(np.asarray(out["value"][i]), np.asarray(s["value"]),
+                                           rtol=2e-5, atol=1e-7)
+                np.testing.assert_array_equal(np.asarray(out["n"][i]), np.asarray(s["n"]))
     toy = lambda k: jax.random.normal(k, (3,))
     odd = jax.random.split(jax.random.PRNGKey(1), 5)           # 5 seeds on 2 devices: padded
-    np.testing.assert_allclose(np.asarray(shard_seeds(toy, odd)),
-                               np.asarray(jax.vmap(toy)(odd)), rtol=1e-6)
+    for mode in ("map", "vmap"):
+        got = shard_seeds(toy, odd, per_device=mode)
+        assert got.shape == (5, 3)
+        np.testing.assert_allclose(np.asarray(got), np.asarray(jax.vmap(toy)(odd)), rtol=1e-6)
+    # Typed keys work too.
+    typed = jax.random.split(jax.random.key(3), 3)
+    np.testing.assert_allclose(np.asarray(shard_seeds(toy, typed)),
+                               np.asarray(jax.vmap(toy)(typed)), rtol=1e-6)
     print("OK")
 """)
 
@@ -62,7 +76,29 @@ def test_shard_seeds_in_process_single_device_and_padding():
         return {"x": jax.random.normal(key, (3,)), "s": jnp.sum(jax.random.uniform(key, (4,)))}
 
     keys = jax.random.split(jax.random.PRNGKey(2), 3)
-    out = shard_seeds(train, keys)
     ref = jax.vmap(train)(keys)
-    np.testing.assert_allclose(np.asarray(out["x"]), np.asarray(ref["x"]), rtol=1e-6)
-    assert out["s"].shape == (3,)
+    for mode in ("auto", "map", "vmap"):
+        out = shard_seeds(train, keys, per_device=mode)
+        np.testing.assert_allclose(np.asarray(out["x"]), np.asarray(ref["x"]), rtol=1e-6)
+        np.testing.assert_allclose(np.asarray(out["s"]), np.asarray(ref["s"]), rtol=1e-6)
+        assert out["s"].shape == (3,)
+
+
+def test_shard_seeds_rejects_bad_arguments():
+    toy = lambda k: jax.random.normal(k, (2,))  # noqa: E731
+    keys = jax.random.split(jax.random.PRNGKey(0), 2)
+    with pytest.raises(ValueError, match="per_device"):
+        shard_seeds(toy, keys, per_device="pmap")
+    with pytest.raises(ValueError, match="keys"):
+        shard_seeds(toy, jnp.zeros((0, 2), jnp.uint32))
+    with pytest.raises(ValueError, match="devices"):
+        shard_seeds(toy, keys, devices=[])
+
+
+def test_auto_mode_maps_on_cpu_devices():
+    from hedger_jax.sharding import resolve_per_device, seed_mesh
+
+    mesh = seed_mesh()
+    assert resolve_per_device("auto", mesh) == ("map" if jax.default_backend() == "cpu"
+                                                 else "vmap")
+    assert resolve_per_device("vmap", mesh) == "vmap"
