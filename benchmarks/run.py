@@ -259,10 +259,13 @@ def episodes_per_call(cfg, minimum: int) -> int:
 
 
 def time_training(cfg, continuous, mem, n_episodes, n_seeds=None, serial=None, min_cpu=2.0,
-                  max_reps=40):
+                  max_reps=40, seed_mode="vmap"):
     """(points per CPU-second, first-call seconds, points per wall-second). ``serial``:
     compile inside ``hedger_jax.runtime.serial_codegen`` (None: the library's auto policy,
-    on the vmapped memory's largest array: n_seeds times one seed's).
+    on the vmapped memory's largest array: n_seeds times one seed's). ``seed_mode``: with
+    ``n_seeds``, "vmap" (the seeds batched) or "map" (``lax.map``: one after another in the
+    same program, as ``shard_seeds`` runs a CPU device's seeds; the auto policy then looks at
+    one seed's memory).
 
     Each timed call runs ``n_episodes`` from a fresh copy of ``mem`` (copied outside the
     timing) with its own key, repeated until ``min_cpu`` CPU-seconds (or ``max_reps`` calls):
@@ -270,10 +273,14 @@ def time_training(cfg, continuous, mem, n_episodes, n_seeds=None, serial=None, m
     up to 1.4x between identical runs.
     """
     fn = episodes_fn(cfg, continuous, n_episodes)
-    if n_seeds is not None:
+    if n_seeds is not None and seed_mode == "map":
+        one = fn
+        fn = lambda m, k: jax.lax.map(lambda a: one(*a), (m, k))  # noqa: E731
+    elif n_seeds is not None:
         fn = jax.vmap(fn)
     if serial is None:
-        serial = serial_codegen_wanted(largest_array_bytes(cfg) * (n_seeds or 1))
+        batch = n_seeds if n_seeds is not None and seed_mode == "vmap" else 1
+        serial = serial_codegen_wanted(largest_array_bytes(cfg) * batch)
     f = jit_serial_codegen(fn, enabled=serial, donate_argnums=(0,))
     fresh = lambda: jax.block_until_ready(jax.tree_util.tree_map(jnp.copy, mem))  # noqa: E731
 
@@ -336,20 +343,25 @@ def bench_seeds(seed_counts, cap, prefill, rng, results, quick, kind, baseline_p
     z, v = fake_points(prefill, rng)
     cfg = mc_config(cap, kind)
     base = None
-    for n in seed_counts:
-        mem = filled_memory(cfg, z, v)
-        mems = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (n,) + x.shape).copy(), mem)
-        del mem
-        n_eps = episodes_per_call(cfg, 1 if quick else 2)
-        pps, t_first, wall = time_training(cfg, False, mems, n_eps, n_seeds=n,
-                                           min_cpu=0.5 if quick else 2.0)
-        base = base or pps
-        rows.append({"seeds": n, "index": kind, "capacity": cap, "prefill": prefill,
-                     "total_points_per_s": pps, "total_points_per_wall_s": wall,
-                     "per_seed_points_per_s": pps / n, "speedup_vs_1_seed": pps / base,
-                     "ratio_vs_baseline": (pps / baseline_pps) if baseline_pps else None})
-        print("seeds", rows[-1], flush=True)
-        del mems
+    # The grid also with the seeds one after another in one program (lax.map), as
+    # hedger_jax.sharding.shard_seeds runs a CPU device's seeds.
+    for mode in ("vmap", "map") if kind == "grid" else ("vmap",):
+        for n in seed_counts:
+            mem = filled_memory(cfg, z, v)
+            mems = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (n,) + x.shape).copy(),
+                                          mem)
+            del mem
+            n_eps = episodes_per_call(cfg, 1 if quick else 2)
+            pps, t_first, wall = time_training(cfg, False, mems, n_eps, n_seeds=n,
+                                               min_cpu=0.5 if quick else 2.0, seed_mode=mode)
+            base = base or pps
+            rows.append({"seeds": n, "index": kind, "mode": mode, "capacity": cap,
+                         "prefill": prefill, "total_points_per_s": pps,
+                         "total_points_per_wall_s": wall, "per_seed_points_per_s": pps / n,
+                         "speedup_vs_1_seed": pps / base,
+                         "ratio_vs_baseline": (pps / baseline_pps) if baseline_pps else None})
+            print("seeds", rows[-1], flush=True)
+            del mems
     results.setdefault("seeds", []).extend(rows)
 
 
@@ -443,11 +455,15 @@ def markdown(results) -> str:
     if "seeds" in results:
         out += ["## (c) Total training points/s vs vmapped seeds (discrete)", "",
                 "Compiled serially where the vmapped memories' largest array reaches 512 KiB "
-                "(from 2 seeds of the grid at 20,000 slots).", "",
-                "| index | capacity | stored | seeds | total points/s | wall | per seed | vs 1 seed "
-                "| vs baseline |", "|---|---|---|---|---|---|---|---|---|"]
+                "(from 2 seeds of the grid at 20,000 slots). Mode `map`: the same seeds one "
+                "after another in one program (`lax.map`, as `hedger_jax.sharding.shard_seeds` "
+                "runs a CPU device's seeds; across devices see `benchmarks/seeds_sharded.py`); "
+                "`vs 1 seed` is against the first row of the index.", "",
+                "| index | mode | capacity | stored | seeds | total points/s | wall | per seed "
+                "| vs 1 seed | vs baseline |", "|---|---|---|---|---|---|---|---|---|---|"]
         for r in results["seeds"]:
-            out.append(f"| {r['index']} | {r['capacity']:,} | {r['prefill']:,} | {r['seeds']} | "
+            out.append(f"| {r['index']} | {r.get('mode', 'vmap')} | {r['capacity']:,} | "
+                       f"{r['prefill']:,} | {r['seeds']} | "
                        f"{fmt(r['total_points_per_s'])} | {fmt(r['total_points_per_wall_s'])} | "
                        f"{fmt(r['per_seed_points_per_s'])} | "
                        f"{fmt(r['speedup_vs_1_seed'], 2)} | {fmt(r['ratio_vs_baseline'], 1)} |")
