@@ -1,7 +1,8 @@
-"""Run a figure's variants over vmapped seeds, block by block, resumably.
+"""Run a figure's variants over batches of seeds, block by block, resumably.
 
 For each variant the seeds are split into batches (``seed_batch``); each batch is one
-``jax.jit(jax.vmap(run_block))`` computation per evaluation block. After every block the
+``jax.jit(jax.vmap(run_block))`` (or, ``seed_mode="map"``, ``jax.jit(lax.map(run_block))``)
+computation per evaluation block. After every block the
 batch's state (memories included) and results so far are checkpointed atomically, so an
 interrupted sweep resumes where it stopped without redoing finished work; a finished batch
 is written once, atomically, as a result file and never recomputed (a result cache keyed on
@@ -96,17 +97,39 @@ def build_variant(variant: Variant):
     return env, config, train, info
 
 
+SEED_MODES = ("auto", "vmap", "map")
+
+
+def resolve_seed_mode(seed_mode: str) -> str:
+    """"vmap" or "map" for a ``seed_mode`` ("auto": map on the CPU backend, else vmap)."""
+    if seed_mode not in SEED_MODES:
+        raise ValueError(f"seed_mode: expected one of {SEED_MODES}, got {seed_mode!r}")
+    if seed_mode == "auto":
+        return "map" if jax.default_backend() == "cpu" else "vmap"
+    return seed_mode
+
+
 @functools.lru_cache(maxsize=32)
-def compiled_variant(variant: Variant):
-    """(jit(vmap(init)), jit(vmap(run_block)) donating its state, phase-1 info), cached per
-    variant so that repeated and resumed runs in one process compile once per batch size."""
+def compiled_variant(variant: Variant, seed_mode: str = "vmap"):
+    """(init, run_block donating its state, phase-1 info) over a batch of seeds, cached per
+    variant and mode so that repeated and resumed runs in one process compile once per batch
+    size. seed_mode "vmap": ``jit(vmap(...))``; "map": ``jit(lax.map(...))``, the batch's
+    seeds one after another in one program (on a CPU each then runs at the one-seed rate;
+    vmapped seeds share the batched kernels and wait for the longest episode)."""
     _, config, train, info = build_variant(variant)
     # Off unless HEDGER_JAX_SERIAL_CODEGEN=1: a block also evaluates hundreds of episodes at
     # once, which gains from XLA's op splitting (Figure 2 quick: 1:42 default, 2:22 serial
     # on 2 cores, same per-CPU time); long training-bound runs gain from "1".
     serial = serial_codegen_wanted(largest_array_bytes(config), auto=False)
-    init = jit_serial_codegen(jax.vmap(train.init), enabled=serial)
-    run_block = jit_serial_codegen(jax.vmap(train.run_block), enabled=serial, donate_argnums=0)
+    if seed_mode == "map":
+        batched_init = functools.partial(jax.lax.map, train.init)
+        batched_block = functools.partial(jax.lax.map, train.run_block)
+    elif seed_mode == "vmap":
+        batched_init, batched_block = jax.vmap(train.init), jax.vmap(train.run_block)
+    else:
+        raise ValueError(f"seed_mode: expected 'vmap' or 'map', got {seed_mode!r}")
+    init = jit_serial_codegen(batched_init, enabled=serial)
+    run_block = jit_serial_codegen(batched_block, enabled=serial, donate_argnums=0)
     return init, run_block, info
 
 
@@ -153,8 +176,13 @@ def _load_checkpoint(path: str, state_like, result_like, key: str):
 
 def run_variant(variant: Variant, seeds: List[int], out_dir: str, *, base_seed: int = 0,
                 seed_batch: int = 8, progress: bool = True,
-                on_block: Optional[Callable[[int], None]] = None) -> Dict[str, Any]:
+                on_block: Optional[Callable[[int], None]] = None,
+                seed_mode: str = "vmap") -> Dict[str, Any]:
     """Run (or resume, or load) one variant over ``seeds``. Returns its result record.
+
+    ``seed_mode``: how a batch's seeds run ("vmap" | "map" | "auto", ``compiled_variant``).
+    Results agree statistically between modes and batch sizes, not bit for bit, and the
+    result cache does not tell them apart (as for ``seed_batch``).
 
     The record holds, per evaluation (block 0 = after phase 1): ``points`` and ``episodes``
     (seeds, blocks+1) and ``mean_steps``/``success_rate`` (seeds, blocks+1).
@@ -171,7 +199,7 @@ def run_variant(variant: Variant, seeds: List[int], out_dir: str, *, base_seed: 
             # The cache is shared between figures that name the same run differently.
             return dict(record, label=variant.label)
 
-    init, run_block, info = compiled_variant(variant)
+    init, run_block, info = compiled_variant(variant, resolve_seed_mode(seed_mode))
     n_blocks = variant.run.n_blocks
     batches = [seeds[i:i + seed_batch] for i in range(0, len(seeds), seed_batch)]
     per_batch: List[Dict[str, np.ndarray]] = []

@@ -115,6 +115,39 @@ def test_run_variant_resumes_after_interruption(tmp_path):
     assert not [p for p in os.listdir(os.path.join(out, "cache")) if p.startswith("ckpt-")]
 
 
+def test_seed_mode_map_runs_each_seed_alone(tmp_path):
+    """seed_mode="map": the batch's seeds one after another in one program. Each seed runs the
+    one-seed program, so its numbers do not depend on the batch it ran in (batches of 2 and of
+    1 agree bit for bit, resumption included), and they agree with the vmapped mode."""
+    seeds = [0, 1, 2]
+    calls = []
+
+    def interrupt(block):
+        calls.append(block)
+        if block == 2:
+            raise KeyboardInterrupt
+
+    out = str(tmp_path / "map2")
+    with pytest.raises(KeyboardInterrupt):
+        runner.run_variant(TINY, seeds, out, seed_batch=2, progress=False, on_block=interrupt,
+                           seed_mode="map")
+    pairs = runner.run_variant(TINY, seeds, out, seed_batch=2, progress=False, seed_mode="map")
+    ones = runner.run_variant(TINY, seeds, str(tmp_path / "map1"), seed_batch=1,
+                              progress=False, seed_mode="map")
+    assert pairs["complete"] and np.asarray(pairs["mean_steps"]).shape == (3, 4)
+    for name in ("mean_steps", "points", "episodes", "memory_size"):
+        np.testing.assert_array_equal(np.asarray(pairs[name]), np.asarray(ones[name]), name)
+    vm = runner.run_variant(TINY, seeds, str(tmp_path / "vmap"), seed_batch=2, progress=False,
+                            seed_mode="vmap")
+    assert np.asarray(vm["episodes"]).tolist() == np.asarray(pairs["episodes"]).tolist()
+    ms = np.asarray(pairs["mean_steps"])
+    assert np.all((ms >= 1) & (ms <= 30)) and not np.allclose(ms[0], ms[1])
+    assert runner.resolve_seed_mode("vmap") == "vmap"
+    assert runner.resolve_seed_mode("auto") in ("map", "vmap")
+    with pytest.raises(ValueError, match="seed_mode"):
+        runner.resolve_seed_mode("pmap")
+
+
 def test_corrupt_checkpoint_is_not_trusted(tmp_path):
     out = str(tmp_path)
     with pytest.raises(KeyboardInterrupt):
@@ -154,6 +187,8 @@ def test_cli_rejects_bad_arguments(capsys):
         main(["fig7"])
     with pytest.raises(SystemExit):
         main(["fig1", "--seeds", "0"])
+    with pytest.raises(SystemExit):
+        main(["fig1", "--seed-mode", "pmap"])
 
 
 def test_select_variants_optional_and_eval_episodes():
