@@ -110,27 +110,50 @@ def resolve_seed_mode(seed_mode: str) -> str:
 
 
 @functools.lru_cache(maxsize=32)
-def compiled_variant(variant: Variant, seed_mode: str = "vmap"):
+def compiled_variant(variant: Variant, seed_mode: str = "vmap", n_devices: int = 1):
     """(init, run_block donating its state, phase-1 info) over a batch of seeds, cached per
     variant and mode so that repeated and resumed runs in one process compile once per batch
     size. seed_mode "vmap": ``jit(vmap(...))``; "map": ``jit(lax.map(...))``, the batch's
     seeds one after another in one program (on a CPU each then runs at the one-seed rate;
-    vmapped seeds share the batched kernels and wait for the longest episode)."""
+    vmapped seeds share the batched kernels and wait for the longest episode). With
+    ``n_devices`` > 1 the batch's seeds are split over the first ``n_devices`` devices
+    (``hedger_jax.sharding.per_device``): batches must then be a multiple of it long."""
     _, config, train, info = build_variant(variant)
     # Off unless HEDGER_JAX_SERIAL_CODEGEN=1: a block also evaluates hundreds of episodes at
     # once, which gains from XLA's op splitting (Figure 2 quick: 1:42 default, 2:22 serial
     # on 2 cores, same per-CPU time); long training-bound runs gain from "1".
     serial = serial_codegen_wanted(largest_array_bytes(config), auto=False)
-    if seed_mode == "map":
-        batched_init = functools.partial(jax.lax.map, train.init)
-        batched_block = functools.partial(jax.lax.map, train.run_block)
-    elif seed_mode == "vmap":
-        batched_init, batched_block = jax.vmap(train.init), jax.vmap(train.run_block)
-    else:
+    if seed_mode not in ("map", "vmap"):
         raise ValueError(f"seed_mode: expected 'vmap' or 'map', got {seed_mode!r}")
-    init = jit_serial_codegen(batched_init, enabled=serial)
-    run_block = jit_serial_codegen(batched_block, enabled=serial, donate_argnums=0)
+    if n_devices > 1:
+        from hedger_jax.sharding import per_device, seed_mesh
+
+        mesh = seed_mesh(jax.devices()[:n_devices])
+        sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("seeds"))
+        shard = dict(in_shardings=sharding, out_shardings=sharding)
+        batched_init = per_device(train.init, mesh, seed_mode)
+        batched_block = per_device(train.run_block, mesh, seed_mode)
+    else:
+        shard = {}
+        if seed_mode == "map":
+            batched_init = functools.partial(jax.lax.map, train.init)
+            batched_block = functools.partial(jax.lax.map, train.run_block)
+        else:
+            batched_init, batched_block = jax.vmap(train.init), jax.vmap(train.run_block)
+    init = jit_serial_codegen(batched_init, enabled=serial, **shard)
+    run_block = jit_serial_codegen(batched_block, enabled=serial, donate_argnums=0, **shard)
     return init, run_block, info
+
+
+def usable_devices(devices: Optional[int]) -> int:
+    """How many devices a run splits its seed batches over: ``devices`` (None: all of
+    ``jax.devices()``), at most as many as there are."""
+    have = len(jax.devices())
+    if devices is None:
+        return have
+    if int(devices) < 1:
+        raise ValueError(f"devices: must be >= 1, got {devices}")
+    return min(int(devices), have)
 
 
 def _to_numpy(tree):
@@ -165,6 +188,14 @@ def _load_checkpoint(path: str, state_like, result_like, key: str):
             state = jax.tree_util.tree_unflatten(
                 s_def, [jnp.asarray(z[f"s{i}"]) for i in range(len(s_leaves))])
             stacked = [z[f"r{i}"] for i in range(len(r_leaves))]
+            # Shapes as this run's (e.g. not padded for another number of devices).
+            for got, like in zip(jax.tree_util.tree_leaves(state), s_leaves):
+                if got.shape != like.shape or got.dtype != like.dtype:
+                    raise ValueError(f"state leaf {got.shape} {got.dtype}, this run's "
+                                     f"{like.shape} {like.dtype}")
+            for got, like in zip(stacked, r_leaves):
+                if got.shape[:1] + got.shape[2:] != like.shape[:1] + like.shape[1:]:
+                    raise ValueError(f"result leaf {got.shape}, this run's {like.shape}")
     except Exception as err:  # a corrupt checkpoint is ignored (the run restarts), not trusted
         print(f"warning: ignoring unreadable checkpoint {path}: {err}")
         return None
@@ -177,12 +208,15 @@ def _load_checkpoint(path: str, state_like, result_like, key: str):
 def run_variant(variant: Variant, seeds: List[int], out_dir: str, *, base_seed: int = 0,
                 seed_batch: int = 8, progress: bool = True,
                 on_block: Optional[Callable[[int], None]] = None,
-                seed_mode: str = "vmap") -> Dict[str, Any]:
+                seed_mode: str = "vmap", devices: Optional[int] = 1) -> Dict[str, Any]:
     """Run (or resume, or load) one variant over ``seeds``. Returns its result record.
 
     ``seed_mode``: how a batch's seeds run ("vmap" | "map" | "auto", ``compiled_variant``).
     Results agree statistically between modes and batch sizes, not bit for bit, and the
-    result cache does not tell them apart (as for ``seed_batch``).
+    result cache does not tell them apart (as for ``seed_batch``). ``devices``: split each
+    batch over this many devices (None: all; a batch is padded to a multiple of them by
+    repeating its last seed, whose copies are dropped from the results). With "map" a seed's
+    numbers do not depend on the device or the batch.
 
     The record holds, per evaluation (block 0 = after phase 1): ``points`` and ``episodes``
     (seeds, blocks+1) and ``mean_steps``/``success_rate`` (seeds, blocks+1).
@@ -199,7 +233,8 @@ def run_variant(variant: Variant, seeds: List[int], out_dir: str, *, base_seed: 
             # The cache is shared between figures that name the same run differently.
             return dict(record, label=variant.label)
 
-    init, run_block, info = compiled_variant(variant, resolve_seed_mode(seed_mode))
+    n_dev = usable_devices(devices)
+    init, run_block, info = compiled_variant(variant, resolve_seed_mode(seed_mode), n_dev)
     n_blocks = variant.run.n_blocks
     batches = [seeds[i:i + seed_batch] for i in range(0, len(seeds), seed_batch)]
     per_batch: List[Dict[str, np.ndarray]] = []
@@ -219,7 +254,8 @@ def run_variant(variant: Variant, seeds: List[int], out_dir: str, *, base_seed: 
                 bar.update(n_blocks + 1)
             continue
         ckpt_path = os.path.join(cache_dir, f"ckpt-{batch_key}.npz")
-        keys = jnp.stack([jax.random.fold_in(jax.random.PRNGKey(base_seed), s) for s in batch])
+        padded = batch + [batch[-1]] * ((-len(batch)) % n_dev)
+        keys = jnp.stack([jax.random.fold_in(jax.random.PRNGKey(base_seed), s) for s in padded])
         state_like, first_like = jax.eval_shape(init, keys)
         resumed = _load_checkpoint(ckpt_path, state_like, first_like, batch_key)
         if resumed is None:
@@ -230,6 +266,10 @@ def run_variant(variant: Variant, seeds: List[int], out_dir: str, *, base_seed: 
             _save_checkpoint(ckpt_path, state, results, done, batch_key)
         else:
             state, results, done = resumed
+            if n_dev > 1:   # the checkpoint's arrays, split over the devices as run_block wants
+                state = jax.device_put(state, jax.sharding.NamedSharding(
+                    jax.sharding.Mesh(np.asarray(jax.devices()[:n_dev], dtype=object),
+                                      ("seeds",)), jax.sharding.PartitionSpec("seeds")))
         if bar is not None:
             bar.update(done + 1)
         for blk in range(done, n_blocks):
@@ -238,12 +278,13 @@ def run_variant(variant: Variant, seeds: List[int], out_dir: str, *, base_seed: 
             results.append(res)
             _save_checkpoint(ckpt_path, state, results, blk + 1, batch_key)
             if bar is not None:
-                bar.set_postfix(steps=f"{float(np.mean(res.evaluation.mean_steps)):.1f}")
+                steps = np.asarray(res.evaluation.mean_steps)[:len(batch)]
+                bar.set_postfix(steps=f"{float(np.mean(steps)):.1f}")
                 bar.update(1)
             if on_block is not None:
                 on_block(blk + 1)
-        stacked = jax.tree_util.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs], 1),
-                                         *results)
+        stacked = jax.tree_util.tree_map(
+            lambda *xs: np.stack([np.asarray(x)[:len(batch)] for x in xs], 1), *results)
         arrays = {
             "points": stacked.points, "episodes": stacked.episodes,
             "mean_steps": stacked.evaluation.mean_steps,

@@ -70,15 +70,26 @@ def _shard_map(fn: Callable, mesh: Mesh) -> Callable:
     return shard_map(fn, mesh=mesh, in_specs=spec, out_specs=spec, check_rep=False)
 
 
+def per_device(fn: Callable, mesh: Mesh, mode: str) -> Callable:
+    """``fn`` (one seed's arguments -> outputs) over a leading seed axis split across the
+    mesh's devices: each device runs its share by ``lax.map`` (mode "map") or ``vmap``
+    ("vmap"). Not jitted; every argument and output leaf has the seed axis first, and its
+    length must be a multiple of the device count."""
+    if mode == "map":
+        def local(*args):
+            return jax.lax.map(lambda a: fn(*a), args)
+    elif mode == "vmap":
+        local = jax.vmap(fn)
+    else:
+        raise ValueError(f"mode: expected 'map' or 'vmap', got {mode!r}")
+    return _shard_map(local, mesh)
+
+
 @functools.lru_cache(maxsize=32)
 def _compiled(train_fn: Callable, mesh: Mesh, mode: str, serial: bool):
     sharding = NamedSharding(mesh, PartitionSpec(AXIS))
-    if mode == "map":
-        local = functools.partial(jax.lax.map, train_fn)
-    else:
-        local = jax.vmap(train_fn)
-    fn = jit_serial_codegen(_shard_map(local, mesh), enabled=serial, in_shardings=sharding,
-                            out_shardings=sharding)
+    fn = jit_serial_codegen(per_device(train_fn, mesh, mode), enabled=serial,
+                            in_shardings=sharding, out_shardings=sharding)
     return fn, sharding
 
 

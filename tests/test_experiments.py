@@ -146,6 +146,52 @@ def test_seed_mode_map_runs_each_seed_alone(tmp_path):
         runner.resolve_seed_mode("pmap")
 
 
+_TWO_DEVICES = """
+import sys, numpy as np, jax, pytest
+sys.path.insert(0, {tests!r})
+from test_experiments import TINY
+from experiments import runner
+assert len(jax.devices()) == 2
+out = sys.argv[1]
+seeds = [0, 1, 2]                                    # padded to 4 on 2 devices
+
+def stop(block):
+    if block == 2:
+        raise KeyboardInterrupt
+
+try:
+    runner.run_variant(TINY, seeds, out + "/two", seed_batch=3, progress=False, on_block=stop,
+                       seed_mode="map", devices=2)
+except KeyboardInterrupt:
+    pass
+two = runner.run_variant(TINY, seeds, out + "/two", seed_batch=3, progress=False,
+                         seed_mode="map", devices=2)
+one = runner.run_variant(TINY, seeds, out + "/one", seed_batch=3, progress=False,
+                         seed_mode="map", devices=1)
+for name in ("mean_steps", "points", "episodes", "memory_size"):
+    np.testing.assert_array_equal(np.asarray(two[name]), np.asarray(one[name]), name)
+assert np.asarray(two["mean_steps"]).shape == (3, 4)
+print("OK")
+"""
+
+
+def test_seed_batches_split_over_two_forced_cpu_devices(tmp_path):
+    """devices=2 (map): each device runs its share of a batch padded to a multiple of the
+    device count; resumed from a checkpoint, the numbers equal one device's bit for bit."""
+    import subprocess
+    import sys
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2",
+               JAX_PLATFORMS="cpu",
+               PYTHONPATH=root + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    code = _TWO_DEVICES.format(tests=os.path.join(root, "tests"))
+    proc = subprocess.run([sys.executable, "-c", code, str(tmp_path)], env=env, cwd=root,
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
+    assert "OK" in proc.stdout
+
+
 def test_corrupt_checkpoint_is_not_trusted(tmp_path):
     out = str(tmp_path)
     with pytest.raises(KeyboardInterrupt):
@@ -187,6 +233,8 @@ def test_cli_rejects_bad_arguments(capsys):
         main(["fig1", "--seeds", "0"])
     with pytest.raises(SystemExit):
         main(["fig1", "--seed-mode", "pmap"])
+    with pytest.raises(SystemExit):
+        main(["fig1", "--devices", "0"])
 
 
 def test_select_variants_optional_and_eval_episodes():
