@@ -226,6 +226,40 @@ def test_one_level_appends_over_several_odd_chunks_match_brute():
     assert (counts > 2 * 5).sum() > 10 and (counts < 16).sum() > 60   # most fit in k   # several trips, no overflow
 
 
+
+def test_one_level_direct_step_and_loop_agree_in_one_batch():
+    """One level: a query whose candidates fit one step of min(chunk, k) takes them as they
+    are (no selection); the others (here a dense cluster) go through the scan loop, 16 at a
+    time under vmap. A mixed batch, vmapped and one by one, gives exactly the brute-force
+    sets and the same arrays both ways."""
+    rng = np.random.default_rng(14)
+    cb, cg = _pair(index_chunk=24, max_neighbours=16, index_levels=1)
+    geo = gi.geometry(cg)
+    cluster = _uniform(rng, 1)[0] + rng.normal(0, 0.01, (200, 3)).astype(np.float32)
+    cluster[:, 2] = np.round(cluster[:, 2])
+    pts = np.concatenate([cluster, _uniform(rng, 600)])
+    queries = np.concatenate([cluster[::5] + 0.001, _uniform(rng, 60), pts[-20:]])
+    mb, mg = _memory(cb, pts), _memory(cg, pts)
+
+    @jax.jit
+    @jax.vmap
+    def candidates(z):
+        first, last, live = gi.level_rows(geo, z)
+        return jnp.sum(gi._choose_level(geo, mg.index, first, last, live, 16)[2])
+
+    n_cand = np.asarray(candidates(jnp.asarray(queries)))
+    direct = n_cand <= min(gi.chunk_width(cg), cg.max_neighbours)
+    assert 20 < direct.sum() < len(queries) - 20          # both paths, each for many queries
+    a = _assert_same(cb, mb, cg, mg, queries)
+    assert a.mask.sum(1)[~direct].max() == 16 and a.mask.sum(1)[direct].max() > 0
+    one = jax.jit(lambda z: select_neighbours(cg, mg, z))
+    batched = jax.device_get(_select_fn(cg)(mg, jnp.asarray(queries)))
+    for i, z in enumerate(queries):
+        single = one(jnp.asarray(z))
+        np.testing.assert_array_equal(np.asarray(single.indices), batched.indices[i])
+        np.testing.assert_array_equal(np.asarray(single.sqdist), batched.sqdist[i])
+        np.testing.assert_array_equal(np.asarray(single.mask), batched.mask[i])
+
 def _segment_inputs(rng, n_rows, recent):
     """A random candidate sequence of n_rows table+recent segments plus the later-writes
     segment (some parts empty), as ``index._scan`` lays it out: (table (n_rows + 1, 4),
