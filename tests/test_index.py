@@ -227,18 +227,31 @@ def test_one_level_appends_over_several_odd_chunks_match_brute():
 
 
 
+def test_direct_step_only_where_a_full_uniform_memory_mostly_fits_it():
+    """``index.direct_width``: min(chunk, k) for a one-level grid whose full uniform memory
+    puts ~90 % of queries' candidates within k (m + 1.28 sqrt(m) <= k), else 0 (denser
+    memories, several levels)."""
+    sparse = _cfg("grid", capacity=400, index_levels=1)
+    assert gi.direct_width(sparse) == min(gi.chunk_width(sparse), 16) > 0
+    assert gi.direct_width(_cfg("grid", capacity=400, index_levels=1, index_chunk=8)) == 8
+    for dense in (_cfg("grid", capacity=2000, index_levels=1), _cfg("grid", capacity=200_000)):
+        assert gi.direct_width(dense) == 0
+
 def test_one_level_direct_step_and_loop_agree_in_one_batch():
     """One level: a query whose candidates fit one step of min(chunk, k) takes them as they
     are (no selection); the others (here a dense cluster) go through the scan loop, 16 at a
     time under vmap. A mixed batch, vmapped and one by one, gives exactly the brute-force
     sets and the same arrays both ways."""
     rng = np.random.default_rng(14)
-    cb, cg = _pair(index_chunk=24, max_neighbours=16, index_levels=1)
+    cb, cg = _pair(capacity=400, index_chunk=24, max_neighbours=16, index_levels=1)
+    assert gi.direct_width(cg) == 16                      # min(chunk, k)
     geo = gi.geometry(cg)
-    cluster = _uniform(rng, 1)[0] + rng.normal(0, 0.01, (200, 3)).astype(np.float32)
+    centres = _uniform(rng, 2)
+    cluster = np.concatenate([centres[0] + rng.normal(0, 0.01, (50, 3)),      # dense
+                              centres[1] + rng.normal(0, 0.1, (80, 3))]).astype(np.float32)
     cluster[:, 2] = np.round(cluster[:, 2])
-    pts = np.concatenate([cluster, _uniform(rng, 600)])
-    queries = np.concatenate([cluster[::5] + 0.001, _uniform(rng, 60), pts[-20:]])
+    pts = np.concatenate([cluster, _uniform(rng, 240)])
+    queries = np.concatenate([cluster[::2] + 0.001, _uniform(rng, 60), pts[-20:]])
     mb, mg = _memory(cb, pts), _memory(cg, pts)
 
     @jax.jit
@@ -248,8 +261,9 @@ def test_one_level_direct_step_and_loop_agree_in_one_batch():
         return jnp.sum(gi._choose_level(geo, mg.index, first, last, live, 16)[2])
 
     n_cand = np.asarray(candidates(jnp.asarray(queries)))
-    direct = n_cand <= min(gi.chunk_width(cg), cg.max_neighbours)
+    direct = n_cand <= 16
     assert 20 < direct.sum() < len(queries) - 20          # both paths, each for many queries
+    assert ((n_cand > 16) & (n_cand <= 24)).sum() >= 3    # some just past the direct step
     a = _assert_same(cb, mb, cg, mg, queries)
     assert a.mask.sum(1)[~direct].max() == 16 and a.mask.sum(1)[direct].max() > 0
     one = jax.jit(lambda z: select_neighbours(cg, mg, z))
