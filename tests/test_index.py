@@ -12,7 +12,6 @@ import numpy as np
 import pytest
 
 from hedger_jax import index as gi
-from hedger_jax import kselect
 from hedger_jax.config import HedgerConfig
 from hedger_jax.memory import (add_points, add_scaled, init_memory, refresh_index,
                                select_neighbours)
@@ -200,10 +199,10 @@ def test_scan_rest_runs_for_the_queries_with_more_candidates_only(levels):
 
 
 def test_wide_user_chunk_one_level_matches_brute():
-    """A chunk wider than ``kselect.MATMUL_PREFIX_MAX`` (its prefix count is a scan, not a matrix
-    product), with queries whose candidates fit in k and queries that overflow it."""
+    """A wide chunk (300: ten 32-bit words of accepted-candidate bits, the last partial), with
+    queries whose candidates fit in k and queries that overflow it."""
     rng = np.random.default_rng(12)
-    cb, cg = _pair(index_chunk=kselect.MATMUL_PREFIX_MAX + 44, max_neighbours=8, index_levels=1)
+    cb, cg = _pair(index_chunk=300, max_neighbours=8, index_levels=1)
     cluster = _uniform(rng, 1)[0] + rng.normal(0, 0.01, (300, 3)).astype(np.float32)
     cluster[:, 2] = np.round(cluster[:, 2])
     pts = np.concatenate([cluster, _uniform(rng, 500)])

@@ -1,4 +1,4 @@
-"""hedger_jax.kselect: the k smallest without sort or custom call, and prefix counts, against
+"""hedger_jax.kselect: the k smallest without sort or custom call, and mask compaction, against
 NumPy references; which form each batch size takes; and the training loops they let XLA
 compile into single kernels."""
 import os
@@ -73,7 +73,7 @@ def test_inside_a_vmapped_cond_with_a_batched_predicate(monkeypatch, kernels, me
     def f(p, v):
         return jax.lax.cond(
             p, lambda v: (kselect.smallest_k(v, jnp.arange(96), 5)[1].sum(),
-                          kselect.exclusive_count(v < 0.5)),
+                          kselect.true_positions(v < 0.5, jnp.arange(96))),
             lambda v: (jnp.int32(-1), jnp.zeros(96, jnp.int32)), v)
 
     got_sum, got_count = jax.jit(jax.vmap(f))(pred, values)
@@ -81,7 +81,9 @@ def test_inside_a_vmapped_cond_with_a_batched_predicate(monkeypatch, kernels, me
         row = np.asarray(values[i])
         if bool(pred[i]):
             assert int(got_sum[i]) == int(np.sort(np.argsort(row, kind="stable")[:5]).sum())
-            want = np.concatenate([[0], np.cumsum(row < 0.5)[:-1]])
+            where = np.flatnonzero(row < 0.5)
+            want = np.full(96, 96)
+            want[:len(where)] = where
             np.testing.assert_array_equal(np.asarray(got_count[i]), want)
         else:
             assert int(got_sum[i]) == -1
@@ -111,15 +113,24 @@ def test_small_batches_avoid_top_k_and_big_ones_use_it(monkeypatch):
     kselect._smallest_k_fn.cache_clear()
 
 
-@pytest.mark.parametrize("n", [5, 64, 96, 300])
-def test_exclusive_count_matches_cumsum(n):
+@pytest.mark.parametrize("n", [1, 5, 31, 32, 33, 96, 300, 1000])
+def test_true_positions_match_numpy(n):
+    """Every rank r (negative, past the last True too) of masks of several densities, as
+    single vectors and under one and two vmaps: the position of the (r + 1)-th True entry,
+    n beyond the last; word borders (31, 32, 33) and a partial last word included."""
     rng = np.random.default_rng(n)
-    x = rng.random((70, n)) < 0.4
-    want = np.cumsum(x, axis=1) - x
-    for depth, arr in ((0, x[0]), (1, x[:3]), (1, x), (2, x[:64].reshape(8, 8, n))):
-        got = _vmapped(kselect.exclusive_count, depth)(jnp.asarray(arr))
-        np.testing.assert_array_equal(np.asarray(got), want[:len(arr.reshape(-1, n))]
-                                      .reshape(arr.shape))
+    masks = np.stack([rng.random(n) < p for p in (0.0, 0.03, 0.4, 0.97, 1.0, 0.5, 0.2, 0.7)])
+    r = np.arange(-2, n + 3, dtype=np.int32)
+    want = np.empty((len(masks), len(r)), np.int64)
+    for i, m in enumerate(masks):
+        where = np.flatnonzero(m)
+        want[i] = [where[j] if 0 <= j < len(where) else n for j in r]
+    fn = lambda m: kselect.true_positions(m, jnp.asarray(r))  # noqa: E731
+    for depth, arr, w in ((0, masks[2], want[2]), (1, masks, want),
+                          (2, masks.reshape(2, 4, n), want.reshape(2, 4, -1))):
+        got = np.asarray(_vmapped(fn, depth)(jnp.asarray(arr)))
+        neg = r < 0                          # unspecified for r < 0: callers mask those
+        np.testing.assert_array_equal(got[..., ~neg], w[..., ~neg])
 
 
 def test_nth_true_finds_each_true_position():
@@ -139,8 +150,10 @@ def test_bad_arguments_are_refused():
         kselect.smallest_k(v, jnp.arange(8), 9)
     with pytest.raises(ValueError, match="two vectors"):
         kselect.smallest_k(jnp.zeros((2, 8)), jnp.zeros((2, 8)), 3)
-    with pytest.raises(ValueError, match="vector"):
-        kselect.exclusive_count(jnp.zeros((2, 8), bool))
+    with pytest.raises(ValueError, match="bool vector"):
+        kselect.true_positions(jnp.zeros((2, 8), bool), jnp.arange(3))
+    with pytest.raises(ValueError, match="bool vector"):
+        kselect.true_positions(jnp.zeros((8,), jnp.int32), jnp.arange(3))
 
 
 _REPLAY_SCRIPT = """
