@@ -53,10 +53,7 @@ Design (all shapes static, so everything jits and vmaps; N = capacity, d = dim, 
   segment starts, or a binary search for some vmapped batch sizes, whichever XLA's CPU
   backend runs faster). With several levels the first trip is
   ``first_trips`` chunks wide and only the queries with more candidates go on (under vmap,
-  16 at a time), so a batch does not run its slowest query's trips for every query. In big
-  vmapped batches the first trip's ``top_k`` gets only the candidates within the smallest of
-  a few shrinking radii that holds k of them (``_first_cut``: same answer, fewer values to
-  order).
+  16 at a time), so a batch does not run its slowest query's trips for every query.
 * **Ring buffer.** With ``full_policy="overwrite_oldest"`` a slot written since the last merge
   is masked out of the tables (its new point is in the recent list or the brute-force writes),
   and a recent-list entry is masked once its slot was written again, so no slot is ever
@@ -879,8 +876,10 @@ def _scan(config, geo: Geometry, index: GridIndex, head, z, lv, tab_start, tab_l
                 #             values: batched selection 1.14-1.19x at 1e5-1e6, measured;
                 #             packing the candidates within the radius into half the width
                 #             first was slower)
-                dd = _first_cut(geo, k)(jnp.where(ok, d2, jnp.inf), r2)
-                return (p0 + width,) + smallest_k(dd, slot, k)
+                # (Cutting the candidates beyond the smallest of a few shrinking radii that
+                # held k before the selection, a gain for XLA's top_k in big batches, slowed
+                # the sort-free form: 0.97x discrete, 0.85x continuous at 3e5, paired.)
+                return (p0 + width,) + smallest_k(jnp.where(ok, d2, jnp.inf), slot, k)
             return (p0 + width,) + top((best_d2, best_idx))
         # One level (small memories): usually every candidate within the radius fits in the
         # k kept entries, whose finite ones are a prefix; then the new ones are appended
@@ -953,63 +952,6 @@ def _widen(d2, idx, width: int):
         return d2, idx
     return (jnp.concatenate([d2, jnp.full((pad,), jnp.inf, d2.dtype)]),
             jnp.concatenate([idx, jnp.zeros((pad,), idx.dtype)]))
-
-
-def _cut_to_k(dd, r2, k: int, n_uniform: int):
-    """dd (width,) squared distances (+inf: not a candidate) with those beyond a cut set to
-    +inf, where the cut is the smallest of ``_CUT_STEPS`` fractions of r2 (shrinking the
-    expected count of a uniform density in n_uniform dimensions by ``_CUT_RATIO`` each)
-    within which at least k entries lie, else r2 (nothing cut). The k smallest entries (ties
-    included) are within the cut, so ``top_k`` picks the same ones from fewer finite values.
-    The counts are one reduction: each is a bit field of one unsigned sum."""
-    bits = int(dd.shape[-1]).bit_length()
-    steps = min(_CUT_STEPS, 32 // bits)
-    cuts = [r2 * jnp.float32(_CUT_RATIO ** (-m * 2.0 / max(n_uniform, 1)))
-            for m in range(1, steps + 1)]
-    packed = jnp.sum(sum((dd <= c).astype(jnp.uint32) << (bits * m) for m, c in enumerate(cuts)))
-    cut = r2
-    for m, c in enumerate(cuts):                     # the largest first: the smallest wins
-        count = (packed >> (bits * m)) & ((1 << bits) - 1)
-        cut = jnp.where(count >= k, c, cut)
-    return jnp.where(dd <= cut, dd, jnp.inf)
-
-
-def _first_cut(geo: Geometry, k: int):
-    """``f(dd, r2) -> dd``: the first trip's candidates before ``top_k`` (see ``_cut_to_k``):
-    unchanged, except under ``vmap`` over at least ``_CUT_MIN_BATCH`` queries, where the
-    entries beyond ``_cut_to_k``'s cut are set to +inf (same k smallest, bit-identical
-    results)."""
-    n_uniform = sum(1 for v in geo.levels[0].inv_side if v)
-
-    @custom_vmap
-    def cut(dd, r2):
-        del r2
-        return dd
-
-    @cut.def_vmap
-    def cut_vmap(axis_size, in_batched, dd, r2):
-        if axis_size < _CUT_MIN_BATCH:
-            return dd, in_batched[0]
-        axes = tuple(0 if b else None for b in in_batched)
-        return jax.vmap(functools.partial(_cut_to_k, k=k, n_uniform=n_uniform),
-                        in_axes=axes)(dd, r2), True
-
-    return cut
-
-
-#: Fractions of the squared radius tried by ``_cut_to_k`` (at most as many as fit one 32-bit
-#: sum), each expecting ``_CUT_RATIO`` times fewer points than the previous.
-_CUT_STEPS = 4
-_CUT_RATIO = 1.3
-#: ``_first_cut`` cuts for vmapped batches of at least this many queries. Why: XLA's CPU
-#: ``top_k`` (a partial sort per query) costs ~0.5 us plus ~30-60 ns per finite value, and a
-#: finer level's first trip holds ~70 candidates within its radius for k = 32: the cut
-#: leaves ~37 (measured, mountain car, 3e5 uniform points). Batched selection, cut / no cut
-#: (paired, 2-core CPU): 4096 queries 1.05-1.09x discrete at 1e5-1e6, 1.03-1.05x continuous;
-#: batches of 64 / 128 1.05-1.08x / 1.05-1.09x discrete, 1.03x / 1.05x continuous at 3e5;
-#: batches of 16-32 0.97-1.04x. In training (single queries and batches of 3-11) it was no
-#: faster, and with continuous actions 0.75x per CPU-second.
-_CUT_MIN_BATCH = 64
 
 
 def _columns_by_search(p, table, sub_begin, sub_delta):

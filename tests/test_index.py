@@ -326,53 +326,15 @@ def test_candidate_columns_match_the_expanded_segments(batch):
             np.testing.assert_array_equal(tab[i, :m], want_tab[3:3 + m], err_msg=str(impl))
 
 
-@pytest.mark.parametrize("width,k,n_uniform", [(192, 32, 2), (320, 32, 3), (64, 8, 2),
-                                                (1000, 16, 2)])
-def test_cut_before_top_k_keeps_the_k_smallest(width, k, n_uniform):
-    """``_cut_to_k`` (the batched first trip's cut before ``top_k``) leaves top_k's answer --
-    values and positions, ties included -- unchanged: uniform-like candidates, fewer than k
-    within the radius, many exact ties, values exactly on a cut, all excluded. And it does cut:
-    with ~2k candidates within the radius it leaves well under 2k finite."""
-    rng = np.random.default_rng(width + k)
-    r2 = 0.04
-    fractions = [gi._CUT_RATIO ** (-m * 2.0 / n_uniform) for m in range(1, gi._CUT_STEPS + 1)]
-    cases = []
-    reach = (width / (2.2 * k)) ** (1.0 / n_uniform)   # ~2.2k within the radius
-    for _ in range(40):             # uniform density in n_uniform dimensions around the query
-        d = rng.uniform(0, 1, width) ** (2.0 / n_uniform) * reach ** 2 * r2
-        cases.append(np.where(d <= r2, d, np.inf))
-    cases.append(np.where(rng.uniform(size=width) < (k - 3) / width,
-                          rng.uniform(0, r2, width), np.inf))              # fewer than k
-    tie = np.full(width, np.inf)
-    tie[::3] = 0.25 * r2                                                   # many exact ties
-    tie[1::7] = 0.1 * r2
-    cases.append(tie)
-    edge = np.full(width, np.inf)                 # values exactly on the cuts (float32)
-    for j, f in enumerate(fractions):
-        edge[j::len(fractions) + 1] = np.float32(np.float32(r2) * np.float32(f))
-    cases.append(edge)
-    cases.append(np.full(width, np.inf))
-    dd = jnp.asarray(np.stack(cases).astype(np.float32))
-    cut = jax.jit(jax.vmap(lambda d: gi._cut_to_k(d, jnp.float32(r2), k, n_uniform)))(dd)
-    want_v, want_i = jax.lax.top_k(-dd, k)
-    got_v, got_i = jax.lax.top_k(-cut, k)
-    np.testing.assert_array_equal(np.asarray(got_v), np.asarray(want_v))
-    np.testing.assert_array_equal(np.asarray(got_i), np.asarray(want_i))
-    finite = np.isfinite(np.asarray(cut[:40])).sum(1)
-    assert np.isfinite(np.asarray(dd[:40])).sum(1).mean() > 1.5 * k
-    assert finite.min() >= min(k, width) and finite.mean() < 1.5 * k
-
-
-def test_big_query_batches_cut_before_top_k_and_match_brute():
-    """Vmapped batches of at least ``_CUT_MIN_BATCH`` queries take the cut before the first
-    trip's top_k (``_first_cut``); smaller ones do not. Both equal brute force, bit for bit
-    equal to each other."""
+def test_big_and_small_query_batches_match_brute_and_each_other():
+    """A vmapped batch of 128 queries and the same queries in batches of 4 (``lax.map``)
+    over a three-level grid: both equal brute force, and bit for bit each other."""
     rng = np.random.default_rng(23)
     kw = dict(capacity=20_000, bandwidth=0.05, max_neighbours=16, index_levels=3)
     cb, cg = _pair(**kw)
     pts = _uniform(rng, 20_000)
     mg = _memory(cg, pts)
-    queries = np.concatenate([_uniform(rng, gi._CUT_MIN_BATCH + 44), pts[:20]])
+    queries = np.concatenate([_uniform(rng, 108), pts[:20]])
     a = _assert_same(cb, _memory(cb, pts), cg, mg, queries)
     assert a.mask.sum(1).mean() > 12
     q = jnp.asarray(queries)
@@ -381,36 +343,6 @@ def test_big_query_batches_cut_before_top_k_and_match_brute():
     small = jax.jit(lambda qq: jax.lax.map(f, qq.reshape(-1, 4, 3)))(q)   # batches of 4
     for x, y in zip(big, small):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y).reshape(np.shape(x)))
-    geo = gi.geometry(cg)
-
-    def first_trip_finite(cut):                    # finite values handed to the first top_k
-        traced, seen = [], []
-        real = jax.lax.top_k
-
-        def spy(x, kk):
-            if not traced:                         # the first trip's (traced first)
-                traced.append(True)
-                jax.debug.callback(lambda c: seen.append(np.asarray(c)),
-                                   jnp.sum(jnp.isfinite(x), axis=-1))
-            return real(x, kk)
-
-        def one(z):
-            first, last, live = gi.level_rows(geo, z)
-            lv, s0, ln = gi._choose_level(geo, mg.index, first, last, live, 16)
-            rec = jnp.zeros_like(s0)
-            return gi._scan(cg, geo, mg.index, mg.head, z, lv, s0, ln, rec, rec)
-
-        try:
-            jax.lax.top_k = spy
-            old, gi._CUT_MIN_BATCH = gi._CUT_MIN_BATCH, (1 if cut else 10 ** 9)
-            jax.block_until_ready(jax.jit(jax.vmap(one))(q))
-            jax.effects_barrier()
-        finally:
-            jax.lax.top_k, gi._CUT_MIN_BATCH = real, old
-        assert traced and seen                     # a big batch: the first trip's top_k
-        return float(np.mean(np.concatenate([np.ravel(c) for c in seen])))
-
-    assert first_trip_finite(True) < 0.8 * first_trip_finite(False)
 
 
 def test_chunk_width_fits_a_full_uniform_memory_and_stays_exact_beyond():

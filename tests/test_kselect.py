@@ -38,8 +38,8 @@ def _vmapped(fn, depth):
 
 @pytest.mark.parametrize("shape", [(96,), (3, 96), (70, 96), (4, 20, 96)])
 def test_smallest_k_matches_a_stable_sort(shape):
-    """Single vectors, small and big vmapped batches, nested vmaps (4 x 20 = 80 members: the
-    big form): the same positions as NumPy's stable sort, the values at those positions and
+    """Single vectors, small and big vmapped batches, nested vmaps (4 x 20 = 80 members):
+    the same positions as NumPy's stable sort, the values at those positions and
     the payload carried along."""
     rng = np.random.default_rng(0)
     k = 32
@@ -63,7 +63,7 @@ def test_inside_a_vmapped_cond_with_a_batched_predicate(monkeypatch, kernels, me
     broadcasts to the batch -- constants the branches close over included. A custom_vmap
     function that closes over an array constant then fails to trace (JAX refuses a batched
     constant): vmapped continuous-action training with the grid index did, through the
-    exploration's cond. Every form (sort-free and top_k, block and matrix counts) traces
+    exploration's cond. Every form (sort-free with the packed compaction, and top_k) traces
     there and gives the members' own answers."""
     monkeypatch.setattr(kselect, "loop_kernels_enabled", lambda: kernels)
     rng = np.random.default_rng(members)
@@ -89,11 +89,10 @@ def test_inside_a_vmapped_cond_with_a_batched_predicate(monkeypatch, kernels, me
             assert int(got_sum[i]) == -1
 
 
-def test_small_batches_avoid_top_k_and_big_ones_use_it(monkeypatch):
+def test_loop_kernel_form_avoids_top_k_at_every_batch_size(monkeypatch):
     """With loop kernels on (``HEDGER_JAX_LOOP_KERNELS=1``), single vectors and vmapped
-    batches below ``BIG_BATCH`` compile without XLA's TopK custom call or a sort; bigger
-    batches (nested vmaps counted together) use top_k; without loop kernels, or with
-    ``kernel_form=False``, top_k always."""
+    batches of any size (nested vmaps included) compile without XLA's TopK custom call or a
+    sort; without loop kernels, or with ``kernel_form=False``, top_k."""
     monkeypatch.setattr(kselect, "loop_kernels_enabled", lambda: True)
     kselect._smallest_k_fn.cache_clear()
 
@@ -101,15 +100,14 @@ def test_small_batches_avoid_top_k_and_big_ones_use_it(monkeypatch):
         f = lambda v: kselect.smallest_k(v, jnp.arange(96, dtype=jnp.int32), 16, **kw)  # noqa
         return _vmapped(f, depth).lower(jnp.zeros(shape, jnp.float32)).compile().as_text()
 
-    for depth, shape in ((0, (96,)), (1, (11, 96)), (2, (4, 8, 96))):
+    for depth, shape in ((0, (96,)), (1, (11, 96)), (2, (4, 8, 96)), (1, (64, 96)),
+                         (2, (8, 11, 96))):
         text = hlo(depth, shape)
         assert "TopK" not in text and " sort(" not in text, shape
-    for depth, shape in ((1, (64, 96)), (2, (8, 11, 96))):
-        assert "TopK" in hlo(depth, shape), shape
     assert "TopK" in hlo(0, (96,), kernel_form=False)
     monkeypatch.setattr(kselect, "loop_kernels_enabled", lambda: False)
     kselect._smallest_k_fn.cache_clear()
-    assert "TopK" in hlo(0, (96,))
+    assert "TopK" in hlo(0, (96,)) and "TopK" in hlo(1, (64, 96))
     kselect._smallest_k_fn.cache_clear()
 
 
