@@ -95,6 +95,9 @@ _MAX_PER_DIM = 4096
 #: Largest number of key buckets of the recent list's lookup table (an insertion costs
 #: O(buckets)).
 _MAX_BUCKETS = 2048
+#: Largest capacity of the grid index: a candidate's column plus ``_TAB_BIT`` (the flag of
+#: ``_columns_by_count``'s single sum) must stay below 2^31, with room for the scan's width.
+_MAX_CAPACITY = 1 << 29
 #: Ratio of the radii of consecutive levels.
 _LEVEL_RATIO = math.sqrt(2.0)
 #: A finer level is used for a query when its rows hold at least this many times k points
@@ -336,6 +339,9 @@ def geometry(config) -> Geometry:
     level is added while a memory full of uniformly spread points would hold at least
     ``_LEVEL_ADD`` x ``max_neighbours`` points in a query's rows at that level (at least one).
     """
+    if config.capacity > _MAX_CAPACITY:
+        raise ValueError(f"capacity: the grid index holds at most {_MAX_CAPACITY} slots (int32 "
+                         f"positions), got {config.capacity}; use neighbour_index='brute'")
     bounds = default_bounds(config)
     values = _value_cells(config, config.k_thresh * (1.0 + _SIDE_MARGIN))
     if _make_level(config, config.k_thresh, bounds, values, 0) is None:
@@ -971,15 +977,34 @@ def _columns_by_search(p, table, sub_begin, sub_delta):
     return jnp.where(in_tab, info[:, 1] + off, info[:, 3] + off - info[:, 2]), in_tab
 
 
+#: Flag bit of ``_columns_by_count``'s single sum: set for a candidate in a table part. The
+#: grid index needs every column (< capacity + scan width) below it (``geometry`` checks).
+_TAB_BIT = 1 << 30
+
+
 def _columns_by_count(p, table, sub_begin, sub_delta):
     """``_candidate_columns`` by comparing every position with every sub-segment begin: the
     column is p plus the sum of the shift changes (``sub_delta``) at the begins <= p (they
     telescope to the shift of p's sub-segment, empty ones included), and p is in a table
-    part iff an odd number of begins are <= p."""
+    part iff an odd number of begins are <= p.
+
+    One sum gives both: the begins <= p are a prefix (they ascend), so adding +``_TAB_BIT`` at
+    every table part's begin and -``_TAB_BIT`` at every recent part's begin adds the bit
+    exactly when p's sub-segment is a table part; the column (>= 0, below the bit) is the rest.
+    The begins and changes are materialised once per query (``fusion.computed_once``): fused
+    into the (width, sub-segments) comparison, XLA recomputed them for every element (4x
+    slower). Against two sums (the column, the parity), paired, bit-identical, 2-core CPU:
+    training 1.16x / 1.13x continuous / discrete at 3e5 slots, 1.11x / 1.13x at 2e4; batched
+    selection 1.16x at 3e5, 0.96x at 1e4; predictions 1.06x at 3e5, 0.985x at 1e4."""
     del table
+    sub_begin = computed_once(sub_begin)
     past = p[:, None] >= sub_begin[None, :]                          # (width, 2 (rows + 1))
-    col = p + jnp.sum(jnp.where(past, sub_delta[None, :], 0), axis=1)
-    return col, (jnp.sum(past.astype(jnp.int32), axis=1) & 1) == 1
+    # Built in the program, not as a NumPy constant (one would become an operand of the
+    # custom_vmap call, which a vmapped cond may batch: see ``kselect._before``).
+    even = jax.lax.broadcasted_iota(jnp.int32, sub_delta.shape, sub_delta.ndim - 1) % 2 == 0
+    delta = computed_once(sub_delta + jnp.where(even, _TAB_BIT, -_TAB_BIT))
+    acc = p + jnp.sum(jnp.where(past, delta[None, :], 0), axis=1)
+    return acc & (_TAB_BIT - 1), acc >= _TAB_BIT
 
 
 def _columns_dispatch(search_batches: Tuple[int, int]):

@@ -273,14 +273,14 @@ def test_one_level_direct_step_and_loop_agree_in_one_batch():
         np.testing.assert_array_equal(np.asarray(single.sqdist), batched.sqdist[i])
         np.testing.assert_array_equal(np.asarray(single.mask), batched.mask[i])
 
-def _segment_inputs(rng, n_rows, recent):
+def _segment_inputs(rng, n_rows, recent, offset=0):
     """A random candidate sequence of n_rows table+recent segments plus the later-writes
     segment (some parts empty), as ``index._scan`` lays it out: (table (n_rows + 1, 4),
     sub_begin, sub_delta, total) and, independently, every position's (column, in table)."""
     tab_len = rng.integers(0, 6, n_rows + 1) * (rng.uniform(size=n_rows + 1) < 0.7)
     tab_len[-1] = 0
     rec_len = rng.integers(0, 4, n_rows + 1) * (rng.uniform(size=n_rows + 1) < 0.5)
-    tab_start = rng.integers(0, 1000, n_rows + 1)
+    tab_start = rng.integers(0, 1000, n_rows + 1) + offset      # offset: columns near the top
     tab_start[-1] = 0
     rec_start = rng.integers(0, recent, n_rows + 1)
     rec_start[-1] = recent
@@ -324,6 +324,28 @@ def test_candidate_columns_match_the_expanded_segments(batch):
             m = min(width, max(len(want_col) - 3, 0))
             np.testing.assert_array_equal(col[i, :m], want_col[3:3 + m], err_msg=str(impl))
             np.testing.assert_array_equal(tab[i, :m], want_tab[3:3 + m], err_msg=str(impl))
+
+
+def test_candidate_columns_near_the_largest_capacity():
+    """Table columns just below the grid's largest capacity (the count's single sum carries a
+    table flag at bit 30) map exactly, single and vmapped; a larger capacity is refused."""
+    rng = np.random.default_rng(22)
+    top = gi._MAX_CAPACITY - 1000
+    p = jnp.arange(24, dtype=jnp.int32)
+    for _ in range(4):
+        (table, sub_begin, sub_delta), want_col, want_tab = _segment_inputs(rng, 9, 64, top)
+        args = (jnp.asarray(table), jnp.asarray(sub_begin), jnp.asarray(sub_delta))
+        single = jax.jit(gi._columns_by_count)(p, *args)
+        batched = jax.jit(jax.vmap(gi._columns_by_count, (None, 0, 0, 0)))(
+            p, *(a[None] for a in args))
+        m = min(24, len(want_col))
+        for col, tab in (single, (batched[0][0], batched[1][0])):
+            np.testing.assert_array_equal(np.asarray(col)[:m], want_col[:m])
+            np.testing.assert_array_equal(np.asarray(tab)[:m], want_tab[:m])
+        assert int(np.max(want_col, initial=0)) > (1 << 28) or not want_tab.any()
+    with pytest.raises(ValueError, match="at most"):
+        gi.geometry(HedgerConfig(state_dim=2, action_dim=1, capacity=gi._MAX_CAPACITY + 1,
+                                 neighbour_index="grid"))
 
 
 def test_big_and_small_query_batches_match_brute_and_each_other():
