@@ -111,6 +111,39 @@ def test_loop_kernel_form_avoids_top_k_at_every_batch_size(monkeypatch):
     kselect._smallest_k_fn.cache_clear()
 
 
+def test_many_members_one_after_another_match_the_batched_search(monkeypatch):
+    """From ``MAP_MEMBERS`` vmapped members on, the members are searched one after another
+    (a scan in the program); the answers are bit for bit those of the batched search (forced
+    by a huge ``MAP_MEMBERS``), for a flat and a nested vmap, and equal the stable sort's."""
+    monkeypatch.setattr(kselect, "loop_kernels_enabled", lambda: True)
+    rng = np.random.default_rng(5)
+    payload = jnp.arange(96, dtype=jnp.int32) * 3 + 1
+
+    def run(shape, members_limit):
+        monkeypatch.setattr(kselect, "MAP_MEMBERS", members_limit)
+        kselect._smallest_k_fn.cache_clear()
+        f = _vmapped(lambda v: kselect.smallest_k(v, payload, 32), len(shape) - 1)
+        return [np.asarray(a) for a in f(jnp.asarray(values))]
+
+    for shape in ((kselect.MAP_MEMBERS, 96), (4, 20, 96)):
+        base = _cases(rng, int(np.prod(shape)))
+        for name in ("spread", "ties with inf"):
+            values = base[name].reshape(shape)
+            mapped = run(shape, 64)
+            batched = run(shape, 10 ** 9)
+            for a, b in zip(mapped, batched):
+                np.testing.assert_array_equal(a, b, err_msg=f"{shape} {name}")
+            flat_v, flat_p = values.reshape(-1, 96), mapped[1].reshape(-1, 32)
+            for row, gp in zip(flat_v, flat_p):
+                np.testing.assert_array_equal(np.sort((gp - 1) // 3), _reference(row, 32))
+    monkeypatch.setattr(kselect, "MAP_MEMBERS", 64)
+    kselect._smallest_k_fn.cache_clear()
+    jaxpr = str(jax.make_jaxpr(jax.vmap(lambda v: kselect.smallest_k(v, payload, 32)))(
+        jnp.zeros((64, 96), jnp.float32)))
+    assert "scan" in jaxpr
+    kselect._smallest_k_fn.cache_clear()
+
+
 @pytest.mark.parametrize("n", [1, 5, 31, 32, 33, 96, 300, 1000])
 def test_true_positions_match_numpy(n):
     """Every rank r (negative, past the last True too) of masks of several densities, as
