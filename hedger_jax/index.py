@@ -860,7 +860,7 @@ def _scan(config, geo: Geometry, index: GridIndex, head, z, lv, tab_start, tab_l
 
     def trip(p0, best_d2, best_idx, width, fresh=False):
         p = p0 + jnp.arange(width, dtype=jnp.int32)                  # (width,)
-        columns = _later_candidate_columns if L > 1 and not fresh else _candidate_columns
+        columns = _candidate_columns
         slot, d2, ok = candidates(p, columns)
         # Only candidates nearer than the current k-th can enter (an equal one would lose to
         # the earlier entry anyway): later trips hand top_k few finite values (it is cheap on
@@ -1031,16 +1031,14 @@ def _columns_dispatch(search_batches: Tuple[int, int]):
 #: (segments, 4) (begin, table start, table length, recent start); sub_begin, sub_delta:
 #: (2 segments,) (``_scan``). Both ways give the same result; which is cheaper depends on how
 #: many queries run together (XLA's CPU backend emits the count's small reductions as scalar
-#: loops, and its batched gathers element by element). Measured (paired, 2-core CPU, mountain
-#: car, selection alone), count / search speed: 1.01-1.38x for single queries, 0.95-1.09x for
-#: batches of 3, 0.63-1.14x for 12, 0.94-1.06x for 64, 1.11-1.23x for 4096. So the search
-#: serves vmapped batches of 8-255 queries ...
-_candidate_columns = _columns_dispatch((8, 256))
-#: ... and, in the multi-level scan's later trips (queries with more candidates than the first
-#: trip held, and level-0 rescans), every vmapped batch below 256: continuous training at 3e5
-#: slots (its ``batch_cond`` groups of 4 scan on) 1.13x faster than with the count there,
-#: discrete 0.96-0.98x at 1e5-1e6 (batches of 3-4), continuous 1e5 1.00x (paired).
-_later_candidate_columns = _columns_dispatch((1, 256))
+#: loops, and its batched gathers element by element). With the count's single sum
+#: (``_columns_by_count``) the search serves vmapped batches of 13-255 queries only (it served
+#: 8-255, and every batch below 256 in the multi-level scan's later trips). Paired, training,
+#: bit-identical, 2-core CPU, against those ranges: continuous 1.20x at 3e5 and 1e5 slots
+#: (greedy batches of 11-12 queries), 1.04x at 2e4; discrete 1.08x at 3e5, 1.03x at 1e6,
+#: 1.01x at 2e4; 4 vmapped seeds 0.99x. Searching from 17 instead (batch_cond's groups of 16
+#: counting too): continuous 1.06x, discrete 0.96x at 3e5, so 13.
+_candidate_columns = _columns_dispatch((13, 256))
 
 
 #: Widest default scan step (``chunk_width``), and the steps' granularity.

@@ -299,10 +299,10 @@ def _segment_inputs(rng, n_rows, recent, offset=0):
             np.asarray(cols, np.int64), np.asarray(in_tab, bool))
 
 
-@pytest.mark.parametrize("batch", [None, 3, 12, 300])
+@pytest.mark.parametrize("batch", [None, 3, 12, 16, 300])
 def test_candidate_columns_match_the_expanded_segments(batch):
     """Both ways of mapping a candidate position to its (column, table part) -- the binary
-    search and the compare-and-count, and the two dispatchers that pick one by the number of
+    search and the compare-and-count, and the dispatcher that picks one by the number of
     vmapped queries -- against the segments written out one position at a time (empty table,
     recent and whole segments)."""
     rng = np.random.default_rng(21)
@@ -310,8 +310,7 @@ def test_candidate_columns_match_the_expanded_segments(batch):
     cases = [_segment_inputs(rng, 9, 64) for _ in range(n)]
     width = 16
     p = np.arange(width, dtype=np.int32) + 3
-    for impl in (gi._columns_by_search, gi._columns_by_count, gi._candidate_columns,
-                 gi._later_candidate_columns):
+    for impl in (gi._columns_by_search, gi._columns_by_count, gi._candidate_columns):
         args = [np.stack([c[0][i] for c in cases]) for i in range(3)]
         if batch is None:
             col, tab = jax.jit(impl)(jnp.asarray(p), *(jnp.asarray(a[0]) for a in args))
