@@ -28,6 +28,9 @@ AUTO_GRID_CAPACITY = 16_384
 #: part of the memory through many rows and brute force is faster (d = 4, bandwidth 0.1,
 #: fraction 0.065: brute force 2x faster at 20,000 slots; d = 8, 0.07: 10x).
 AUTO_GRID_MAX_FRACTION = 0.02
+#: Largest capacity of the grid index (int32 positions; ``index._columns_by_count`` keeps a
+#: flag at bit 30 above every column). "auto" uses brute force above it; "grid" is refused.
+GRID_MAX_CAPACITY = 1 << 29
 
 
 def _tuple_of_floats(name: str, value: Any, length: int) -> Tuple[float, ...]:
@@ -74,7 +77,8 @@ class HedgerConfig:
     index of ``hedger_jax.index``: same neighbour sets) or "auto" (grid from
     ``AUTO_GRID_CAPACITY_LOW_DIM`` = 512 slots up for inputs of at most 4 dimensions, from
     ``AUTO_GRID_CAPACITY`` = 16,384 for more, unless the kernel is wide against the input
-    ranges: ``AUTO_GRID_MAX_FRACTION``); ``index_chunk`` candidates per step of the grid scan
+    ranges: ``AUTO_GRID_MAX_FRACTION``; the grid holds at most ``GRID_MAX_CAPACITY`` = 2^29
+    slots); ``index_chunk`` candidates per step of the grid scan
     (None: ``index.chunk_width``, 64, or 16-48 for small one-level memories; with several
     levels the first step is ``index.first_trips`` chunks wide);
     ``index_bounds`` the scaled range ((lo, hi) per dimension) the grid covers (default: [0, 1]
@@ -203,6 +207,9 @@ class HedgerConfig:
         if self.neighbour_index not in NEIGHBOUR_INDEXES:
             raise ValueError(f"neighbour_index: must be one of {NEIGHBOUR_INDEXES}, "
                              f"got {self.neighbour_index!r}")
+        if self.neighbour_index == "grid" and self.capacity > GRID_MAX_CAPACITY:
+            raise ValueError(f"capacity: the grid index holds at most {GRID_MAX_CAPACITY} slots, "
+                             f"got {self.capacity}; use neighbour_index='brute'")
         if self.index_chunk is not None:
             if isinstance(self.index_chunk, bool) or int(self.index_chunk) != self.index_chunk \
                     or int(self.index_chunk) < 1:
@@ -253,7 +260,7 @@ class HedgerConfig:
         if self.neighbour_index == "auto":
             low_dim = self.dim <= AUTO_GRID_LOW_DIM
             threshold = AUTO_GRID_CAPACITY_LOW_DIM if low_dim else AUTO_GRID_CAPACITY
-            if self.capacity < threshold:
+            if self.capacity < threshold or self.capacity > GRID_MAX_CAPACITY:
                 return "brute"
             from hedger_jax.index import scanned_fraction
 

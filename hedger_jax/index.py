@@ -72,6 +72,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.custom_batching import custom_vmap
 
+from hedger_jax.config import GRID_MAX_CAPACITY
 from hedger_jax.fusion import computed_once
 from hedger_jax.kselect import smallest_k, true_positions
 from hedger_jax.loops import batch_cond
@@ -97,7 +98,7 @@ _MAX_PER_DIM = 4096
 _MAX_BUCKETS = 2048
 #: Largest capacity of the grid index: a candidate's column plus ``_TAB_BIT`` (the flag of
 #: ``_columns_by_count``'s single sum) must stay below 2^31, with room for the scan's width.
-_MAX_CAPACITY = 1 << 29
+_MAX_CAPACITY = GRID_MAX_CAPACITY
 #: Ratio of the radii of consecutive levels.
 _LEVEL_RATIO = math.sqrt(2.0)
 #: A finer level is used for a query when its rows hold at least this many times k points

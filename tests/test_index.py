@@ -327,7 +327,8 @@ def test_candidate_columns_match_the_expanded_segments(batch):
 
 def test_candidate_columns_near_the_largest_capacity():
     """Table columns just below the grid's largest capacity (the count's single sum carries a
-    table flag at bit 30) map exactly, single and vmapped; a larger capacity is refused."""
+    table flag at bit 30) map exactly, single and vmapped; a larger capacity is refused with a
+    clear error, and "auto" picks brute force there."""
     rng = np.random.default_rng(22)
     top = gi._MAX_CAPACITY - 1000
     p = jnp.arange(24, dtype=jnp.int32)
@@ -342,9 +343,12 @@ def test_candidate_columns_near_the_largest_capacity():
             np.testing.assert_array_equal(np.asarray(col)[:m], want_col[:m])
             np.testing.assert_array_equal(np.asarray(tab)[:m], want_tab[:m])
         assert int(np.max(want_col, initial=0)) > (1 << 28) or not want_tab.any()
+    big = dict(state_dim=2, action_dim=1, capacity=gi._MAX_CAPACITY + 1)
     with pytest.raises(ValueError, match="at most"):
-        gi.geometry(HedgerConfig(state_dim=2, action_dim=1, capacity=gi._MAX_CAPACITY + 1,
-                                 neighbour_index="grid"))
+        HedgerConfig(**big, neighbour_index="grid")
+    with pytest.raises(ValueError, match="at most"):              # the index's own check
+        gi.geometry(HedgerConfig(**big, neighbour_index="brute"))
+    assert HedgerConfig(**big).index_kind == "brute"           # "auto" falls back
 
 
 def test_big_and_small_query_batches_match_brute_and_each_other():
