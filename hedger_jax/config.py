@@ -138,6 +138,11 @@ class HedgerConfig:
             raise ValueError(f"action_dim: must be >= 1, got {self.action_dim}")
         if self.capacity < 1:
             raise ValueError(f"capacity: must be >= 1, got {self.capacity}")
+        if self.capacity > 2 ** 31 - 1 - max(int(self.max_neighbours), 0):
+            # int32 slot indices, and K's canonical order keys padding above every slot
+            # (hedger_jax.canonical).
+            raise ValueError(f"capacity: must be below 2**31 - max_neighbours (int32 slot "
+                             f"indices), got {self.capacity}")
         d = self.dim
         set_("input_offset", _tuple_of_floats("input_offset", 0.0 if self.input_offset is None
                                               else self.input_offset, d))

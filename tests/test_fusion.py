@@ -12,7 +12,7 @@ from hedger_jax.runtime import _jaxlib_version
 
 @pytest.mark.parametrize("x", [
     np.float32(1.5), np.float32(-0.0), np.float32(np.inf), np.float32(np.nan),
-    np.float32(3.4e38), np.int32(2**31 - 1), np.int32(-2**31), True, False,
+    np.float32(3.4e38), np.float32(-np.inf), np.float32(-3.4e38), np.int32(2**31 - 1), np.int32(-2**31), True, False,
     np.arange(6, dtype=np.float32).reshape(2, 3) - 2.5,
     np.array([2**31 - 1, -2**31, 0], np.int32), np.array([True, False, True])])
 def test_computed_once_is_the_identity_bit_for_bit(x):

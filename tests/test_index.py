@@ -47,10 +47,23 @@ def _select_fn(cfg):
     return jax.jit(jax.vmap(lambda m, z: select_neighbours(cfg, m, z), in_axes=(None, 0)))
 
 
-def _assert_same(cfg_b, m_b, cfg_g, m_g, queries):
+def _assert_canonical(nb):
+    """Batched Neighbours: real neighbours first, by ascending slot."""
+    for idx, mask in zip(np.asarray(nb.indices), np.asarray(nb.mask)):
+        n = int(mask.sum())
+        assert mask[:n].all() and not mask[n:].any()
+        assert np.all(np.diff(idx[:n]) > 0), idx[:n]
+
+
+def _assert_same(cfg_b, m_b, cfg_g, m_g, queries, canonical=False):
+    """Brute force and the grid find the same K (sets; ties at the k-th distance aside); with
+    ``canonical``, both also in canonical order. Returns brute force's."""
     q = jnp.asarray(queries, jnp.float32)
     a = jax.device_get(_select_fn(cfg_b)(m_b, q))
     b = jax.device_get(_select_fn(cfg_g)(m_g, q))
+    if canonical:
+        _assert_canonical(a)
+        _assert_canonical(b)
     for i in range(q.shape[0]):
         da = np.sort(a.sqdist[i][a.mask[i]])
         db = np.sort(b.sqdist[i][b.mask[i]])
@@ -236,14 +249,17 @@ def test_direct_step_only_where_a_full_uniform_memory_mostly_fits_it():
     for dense in (_cfg("grid", capacity=2000, index_levels=1), _cfg("grid", capacity=200_000)):
         assert gi.direct_width(dense) == 0
 
-def test_one_level_direct_step_and_loop_agree_in_one_batch():
+@pytest.mark.parametrize("chunk, k, orders", [(24, 16, False), (16, 24, True)])
+def test_one_level_direct_step_and_loop_agree_in_one_batch(chunk, k, orders):
     """One level: a query whose candidates fit one step of min(chunk, k) takes them as they
     are (no selection); the others (here a dense cluster) go through the scan loop, 16 at a
     time under vmap. A mixed batch, vmapped and one by one, gives exactly the brute-force
-    sets and the same arrays both ways."""
+    sets and the same arrays both ways, in canonical order -- put there by the caller, or,
+    with a step narrower than k (``select_orders``), by each branch of the search."""
     rng = np.random.default_rng(14)
-    cb, cg = _pair(capacity=400, index_chunk=24, max_neighbours=16, index_levels=1)
+    cb, cg = _pair(capacity=400, index_chunk=chunk, max_neighbours=k, index_levels=1)
     assert gi.direct_width(cg) == 16                      # min(chunk, k)
+    assert gi.select_orders(cg) == orders
     geo = gi.geometry(cg)
     centres = _uniform(rng, 2)
     cluster = np.concatenate([centres[0] + rng.normal(0, 0.01, (50, 3)),      # dense
@@ -257,14 +273,14 @@ def test_one_level_direct_step_and_loop_agree_in_one_batch():
     @jax.vmap
     def candidates(z):
         first, last, live = gi.level_rows(geo, z)
-        return jnp.sum(gi._choose_level(geo, mg.index, first, last, live, 16)[2])
+        return jnp.sum(gi._choose_level(geo, mg.index, first, last, live, k)[2])
 
     n_cand = np.asarray(candidates(jnp.asarray(queries)))
     direct = n_cand <= 16
     assert 20 < direct.sum() < len(queries) - 20          # both paths, each for many queries
     assert ((n_cand > 16) & (n_cand <= 24)).sum() >= 3    # some just past the direct step
-    a = _assert_same(cb, mb, cg, mg, queries)
-    assert a.mask.sum(1)[~direct].max() == 16 and a.mask.sum(1)[direct].max() > 0
+    a = _assert_same(cb, mb, cg, mg, queries, canonical=True)
+    assert a.mask.sum(1)[~direct].max() > 16 - (k == 16) and a.mask.sum(1)[direct].max() > 0
     one = jax.jit(lambda z: select_neighbours(cg, mg, z))
     batched = jax.device_get(_select_fn(cg)(mg, jnp.asarray(queries)))
     for i, z in enumerate(queries):
@@ -446,10 +462,11 @@ def test_tiny_and_empty_memories():
         _assert_same(cb, _memory(cb, pts), cg, _memory(cg, pts), q)
 
 
-def _run_writes(policy, capacity, n_writes, refresh_every, seed):
+def _run_writes(policy, capacity, n_writes, refresh_every, seed, **kw):
     """Write points one by one through add_scaled; refresh at chosen steps; compare often."""
     rng = np.random.default_rng(seed)
-    cb, cg = _pair(capacity=capacity, full_policy=policy, max_neighbours=8, bandwidth=0.08)
+    cb, cg = _pair(**{**dict(capacity=capacity, full_policy=policy, max_neighbours=8,
+                             bandwidth=0.08), **kw})
     pts = _uniform(rng, n_writes)
     pts[::5, :2] = pts[::5, :2] * 0.1                          # a dense corner
     vals = rng.normal(size=n_writes).astype(np.float32)
@@ -474,11 +491,11 @@ def _run_writes(policy, capacity, n_writes, refresh_every, seed):
         mb, mg = write_block(mb, mg, jnp.asarray(zs), jnp.asarray(vs), jnp.asarray(writes))
         done += block
         q = np.concatenate([_uniform(rng, 24), pts[max(0, done - 8):done]])
-        _assert_same(cb, mb, cg, mg, q)                        # stale index: still exact
+        _assert_same(cb, mb, cg, mg, q, canonical=True)        # stale index: still exact
         if step % 3 != 2:                                      # sometimes no refresh at all
             mg = refresh(mg)
             assert int(mg.index.n_new) == 0
-            _assert_same(cb, mb, cg, mg, q)
+            _assert_same(cb, mb, cg, mg, q, canonical=True)
     np.testing.assert_array_equal(np.asarray(mb.points), np.asarray(mg.points))
     return mg
 
@@ -493,6 +510,17 @@ def test_incremental_writes_ring_buffer_wraps_and_saturates():
     capacity between refreshes (n_new saturates) and merges bigger than the merge window."""
     blocks = [150, 90, 400, 30, 700, 60, 1500, 5]
     mg = _run_writes("overwrite_oldest", 300, sum(blocks), blocks, seed=4)
+    assert int(mg.size) == 300
+
+
+def test_ring_buffer_saturated_where_the_search_orders_k_itself():
+    """The same ring buffer with a one-level direct step narrower than k, where the search
+    puts K in canonical order in each branch (``select_orders``): the direct step, the scan
+    loop, and brute force over every slot once more writes than slots wait for a merge."""
+    blocks = [150, 400, 30, 700, 5]
+    kw = dict(max_neighbours=24, index_chunk=16, index_levels=1, bandwidth=0.05)
+    assert gi.select_orders(_cfg("grid", capacity=300, full_policy="overwrite_oldest", **kw))
+    mg = _run_writes("overwrite_oldest", 300, sum(blocks), blocks, seed=6, **kw)
     assert int(mg.size) == 300
 
 

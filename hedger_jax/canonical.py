@@ -1,0 +1,39 @@
+"""K's canonical order: real neighbours by slot, then padding in its own order.
+
+Every search method (brute force, the grid index's paths) hands its neighbour set to the
+fit in this order, so fits are bit-identical whichever found K (float32 sums depend on the
+order of their terms).
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+#: Padding keys end here: above every slot (int32 slot indices).
+CANON_PAD = int(np.iinfo(np.int32).max)
+
+
+def canonical_order(idx: jax.Array, d2: jax.Array, mask: jax.Array):
+    """(idx int32 (w,), d2 float32 (w,), mask bool (w,)) -> the same entries reordered: the
+    real ones (``mask``; their slots are distinct) by ascending slot, then the others in their
+    given order; and the new mask (a prefix of the real count).
+
+    Applying it to the first w' entries of a longer set whose later entries are all padding
+    gives the same result as applying it to the whole set (padding keeps its order).
+    """
+    w = idx.shape[-1]
+    j = jnp.arange(w, dtype=jnp.int32)
+    # Distinct keys: a real neighbour's slot, else one of the w largest int32 by position.
+    key = jnp.where(mask, idx.astype(jnp.int32), CANON_PAD - w + j)
+    # Rank of every key (a w x w comparison count: fuses and vectorises, unlike a sort call
+    # per query on CPU); the ranks are a permutation, applied as a w x w one-hot selection
+    # (exact: one nonzero term per sum). A scatter here became a loop of w single-element
+    # updates (XLA's CPU scatter expansion): the one-hot is 1.09x faster for batched
+    # selection at 1e3-1e4 slots, 1.045x for 16 vmapped training seeds, 1.00-1.03x for one
+    # (paired, same process, bit-identical; 2-core CPU).
+    rank = jnp.sum((key[None, :] < key[:, None]).astype(jnp.int32), axis=1)
+    hit = rank[None, :] == j[:, None]                          # (w out, w in)
+    idx, d2 = (jnp.sum(jnp.where(hit, a[None, :], jnp.zeros((), a.dtype)), axis=1)
+               for a in (idx, d2))
+    return idx, d2, j < jnp.sum(mask.astype(jnp.int32))
