@@ -147,21 +147,28 @@ def _random_action_from_uniform(config: HedgerConfig, u: jax.Array) -> jax.Array
 
 
 def explore_action(config: HedgerConfig, run: RunConfig, memory: Memory, obs: jax.Array,
-                   key: jax.Array) -> jax.Array:
+                   key: jax.Array, greedy_only: Any = False) -> jax.Array:
     """Epsilon-greedy action (A,) for one observation (S,).
 
     All its randomness (the coin, the greedy policy's tie-breaks and fallback, the
     exploratory action) is one draw of ``hedger_jax.rng``: one fused operation per step.
+    ``greedy_only`` (bool (), may be traced): instead, exactly ``greedy_action(config, memory,
+    obs, key)[0]`` -- one copy of the greedy search serves both (``make_train``'s block).
     """
     a_dim = config.action_dim
     n_greedy = greedy_draws(config)
     n_explore = 2 * a_dim if run.exploration == "gaussian" else a_dim
     u = rng.uniform(key, 1 + n_greedy + n_explore)
     ue = u[1 + n_greedy:]
+    u_greedy = u[1:1 + n_greedy]
     explore_now = u[0] < run.epsilon
+    if greedy_only is not False:
+        greedy_only = jnp.asarray(greedy_only, bool)
+        u_greedy = jnp.where(greedy_only, rng.uniform(key, n_greedy), u_greedy)
+        explore_now = explore_now & ~greedy_only
 
     def greedy(_):
-        return greedy_action_from_uniform(config, memory, obs, u[1:1 + n_greedy])[0]
+        return greedy_action_from_uniform(config, memory, obs, u_greedy)[0]
 
     if run.exploration == "random":
         # A random exploratory step needs no greedy search: skipped (an epsilon share of the
@@ -183,6 +190,16 @@ def rollout(env: Any, env_params: Any, act, key: jax.Array, max_steps: int,
     after the end are padding (valid=False). Returns (Transition with leading axis
     max_steps, length int32 ()).
     """
+    buf, t, _ = _rollout(env, env_params, act, key, max_steps, obs0, state0, act_state)
+    return buf, t
+
+
+def _rollout(env: Any, env_params: Any, act, key: jax.Array, max_steps: int,
+             obs0: jax.Array, state0: Any, act_state: Any = None, limit: Any = None):
+    """``rollout``, capped at ``limit`` steps (int32 (), may be traced and exceed max_steps,
+    the buffer's length: later steps are not recorded) -> (buffer, length, success bool ():
+    whether the episode reached its goal, as ``evaluate_policy`` counts it)."""
+    limit = max_steps if limit is None else limit
     obs_dim = obs0.shape[-1]
     a_dim = env.action_space.action_dim
     buf = Transition(
@@ -196,25 +213,27 @@ def rollout(env: Any, env_params: Any, act, key: jax.Array, max_steps: int,
 
     def cond(c):
         t, done = c[0], c[1]
-        return (t < max_steps) & ~done
+        return (t < limit) & ~done
 
     def body(c):
-        t, done, obs, state, act_state, key, buf = c
+        t, done, obs, state, act_state, key, buf, success = c
         k_t = rng.fold_in(key, t)
         k_act, k_step = rng.fold_in(k_t, 0), rng.fold_in(k_t, 1)
         action, act_state = act(k_act, obs, act_state)
         action = jnp.asarray(action, jnp.float32).reshape((a_dim,))
-        next_obs, state, reward, terminated, truncated, _ = env.step(k_step, state, action,
-                                                                     env_params)
-        truncated = truncated | (t + 1 >= max_steps)
+        next_obs, state, reward, terminated, truncated, info = env.step(k_step, state, action,
+                                                                        env_params)
+        success = success | _success(info, terminated)
+        truncated = truncated | (t + 1 >= limit)
         tr = Transition(obs, action, jnp.asarray(reward, jnp.float32), next_obs,
                         jnp.asarray(terminated, bool), jnp.ones((), bool))
-        buf = jax.tree_util.tree_map(lambda b, x: b.at[t].set(x), buf, tr)
-        return t + 1, terminated | truncated, next_obs, state, act_state, key, buf
+        buf = jax.tree_util.tree_map(lambda b, x: b.at[t].set(x, mode="drop"), buf, tr)
+        return t + 1, terminated | truncated, next_obs, state, act_state, key, buf, success
 
-    init = (jnp.zeros((), jnp.int32), jnp.zeros((), bool), obs0, state0, act_state, key, buf)
-    t, _, _, _, _, _, buf = jax.lax.while_loop(cond, body, init)
-    return buf, t
+    init = (jnp.zeros((), jnp.int32), jnp.zeros((), bool), obs0, state0, act_state, key, buf,
+            jnp.zeros((), bool))
+    t, _, _, _, _, _, buf, success = jax.lax.while_loop(cond, body, init)
+    return buf, t, success
 
 
 def train_prefix(config: HedgerConfig, memory: Memory, episode: Transition, length: jax.Array):
@@ -410,16 +429,6 @@ def make_train(env: Any, config: HedgerConfig, run: RunConfig, *, env_params: An
     # The neighbour index is refreshed after every episode (phase 1's included), so that the
     # evaluations, which follow an episode or phase 1, need no refresh of their own: one copy
     # of the refresh in the program.
-    def one_episode(memory, key):
-        k_reset, k_run = jax.random.split(key)
-        obs0, s0 = env.reset(k_reset, env_params)
-
-        def act(k, obs, act_state):  # the memory is read, not carried, by the rollout loop
-            return explore_action(config, run, memory, obs, k), act_state
-
-        ep, length = rollout(env, env_params, act, k_run, max_steps, obs0, s0)
-        return refresh_index(config, train_prefix(config, memory, ep, length)), length
-
     def do_eval(memory, key, points, episodes, mean_len):
         ev = evaluate(env, env_params, config, memory, key, run.eval_episodes,
                       run.eval_max_steps, refresh=False)
@@ -430,34 +439,76 @@ def make_train(env: Any, config: HedgerConfig, run: RunConfig, *, env_params: An
         memory, points = phase1_fn(init_memory(config), k_phase1)
         return RunState(memory, k_run, points, jnp.zeros((), jnp.int32)), k_eval
 
+    n_eval = int(run.eval_episodes)
+
     def block(state: RunState, first: jax.Array, k_eval0: jax.Array):
         """One evaluation block. ``first`` (bool ()): the evaluation right after phase 1
-        (no episodes, the evaluation key ``k_eval0`` from ``phase1``, the run key kept)."""
+        (no episodes, the evaluation key ``k_eval0`` from ``phase1``, the run key kept).
+
+        The block's training episodes, then its evaluation episodes, are one loop over
+        episodes through one rollout, whose policy is epsilon-greedy while training and
+        greedy while evaluating (``explore_action``'s ``greedy_only``): one copy of the
+        greedy search in the program instead of two. The evaluation is ``evaluate``'s,
+        episode for episode (same starts, keys and cap; tested), run one episode at a time.
+        """
         key, k_block, k_eval = jax.random.split(state.key, 3)
         key = jnp.where(first, state.key, key)
         k_eval = jnp.where(first, k_eval0, k_eval)
         n_episodes = jnp.where(first, 0, run.episodes_per_block or 0)
         target = state.points + jnp.where(first, 0, run.points_per_block or 0)
+        k_starts, k_runs = jax.random.split(k_eval)                 # as evaluate_policy's
+        eval_obs0, eval_states0 = env.evaluation_starts(k_starts, env_params, n_eval)
+        eval_keys = jax.random.split(k_runs, n_eval)
 
-        def cond(c):
-            _, points, n_ep, _, _ = c
+        def training(c):
+            _, points, n_ep = c[:3]
             if run.episodes_per_block is not None:
                 return n_ep < n_episodes
             return points < target
 
+        def cond(c):
+            return training(c) | (c[5] < n_eval)
+
         def body(c):
-            memory, points, n_ep, steps, k = c
-            k, k_ep = jax.random.split(k)
-            memory, length = one_episode(memory, k_ep)
-            return memory, points + length, n_ep + 1, steps + length, k
+            memory, points, n_ep, steps, k, j, eval_steps, eval_success = c
+            train_now = training(c)
+            k_next, k_ep = jax.random.split(k)
+            k_reset, k_run = jax.random.split(k_ep)
+            obs0, s0 = env.reset(k_reset, env_params)
+            e = jnp.minimum(j, n_eval - 1)
+            obs0 = jnp.where(train_now, obs0, eval_obs0[e])
+            s0 = jax.tree_util.tree_map(lambda a, b: jnp.where(train_now, a, b[e]), s0,
+                                        eval_states0)
+
+            def act(k_a, obs, act_state):  # the memory is read, not carried, by the rollout
+                return explore_action(config, run, memory, obs, k_a, ~train_now), act_state
+
+            ep, length, success = _rollout(
+                env, env_params, act, jnp.where(train_now, k_run, eval_keys[e]), max_steps,
+                obs0, s0, limit=jnp.where(train_now, max_steps, run.eval_max_steps))
+            memory = jax.lax.cond(
+                train_now,
+                lambda m: refresh_index(config, train_prefix(config, m, ep, length)),
+                lambda m: m, memory)
+            learnt = jnp.where(train_now, length, 0)
+            at = jnp.where(train_now, n_eval, j)                     # n_eval: not recorded
+            eval_steps = eval_steps.at[at].set(
+                jnp.where(success, length, run.eval_max_steps).astype(jnp.float32), mode="drop")
+            eval_success = eval_success.at[at].set(success, mode="drop")
+            return (memory, points + learnt, n_ep + train_now.astype(jnp.int32),
+                    steps + learnt, jnp.where(train_now, k_next, k),
+                    j + (~train_now).astype(jnp.int32), eval_steps, eval_success)
 
         init_c = (state.memory, state.points, jnp.zeros((), jnp.int32),
-                  jnp.zeros((), jnp.int32), k_block)
-        memory, points, n_ep, steps, _ = jax.lax.while_loop(cond, body, init_c)
+                  jnp.zeros((), jnp.int32), k_block, jnp.zeros((), jnp.int32),
+                  jnp.zeros((n_eval,), jnp.float32), jnp.zeros((n_eval,), bool))
+        memory, points, n_ep, steps, _, _, eval_steps, eval_success = jax.lax.while_loop(
+            cond, body, init_c)
         episodes = state.episodes + n_ep
         mean_len = steps.astype(jnp.float32) / jnp.maximum(n_ep, 1).astype(jnp.float32)
         new_state = RunState(memory, key, points, episodes)
-        return new_state, do_eval(memory, k_eval, points, episodes, mean_len)
+        ev = Evaluation(jnp.mean(eval_steps), jnp.mean(eval_success.astype(jnp.float32)))
+        return new_state, BlockResult(ev, points, episodes, mean_len, memory.size, memory.flags)
 
     def init(key):
         state, k_eval = phase1(key)

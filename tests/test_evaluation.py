@@ -81,3 +81,60 @@ def test_lanes_under_vmap_over_seeds_equal_separate_calls():
 def test_lanes_must_be_positive():
     with pytest.raises(ValueError, match="lanes"):
         evaluate_policy(ENV, PARAMS, _noisy_pump, jax.random.PRNGKey(0), N, MAX_STEPS, lanes=0)
+
+
+# ------------------------------------------------------------ make_train's block evaluation
+from hedger_jax.agent import RunConfig, evaluate, explore_action, make_train  # noqa: E402
+from hedger_jax.config import HedgerConfig  # noqa: E402
+from hedger_jax.greedy import greedy_action  # noqa: E402
+
+
+@pytest.mark.parametrize("continuous, exploration", [(False, "random"), (True, "gaussian")])
+def test_explore_action_greedy_only_is_the_greedy_action(continuous, exploration):
+    env = MountainCar(continuous=continuous)
+    cfg = HedgerConfig.for_env(env, capacity=256, bandwidth=0.1)
+    run = RunConfig(exploration=exploration, epsilon=0.9)
+    from hedger_jax.memory import add_points, init_memory
+    r = np.random.default_rng(0)
+    s = r.uniform([-1.2, -0.07], [0.6, 0.07], (200, 2)).astype(np.float32)
+    a = (r.uniform(-1, 1, (200, 1)) if continuous else r.integers(-1, 2, (200, 1)))
+    mem = add_points(cfg, init_memory(cfg), s, a.astype(np.float32),
+                     r.uniform(0, 1, 200).astype(np.float32))
+    obs = jnp.asarray(s[:40] + 0.01)
+    keys = jax.random.split(jax.random.PRNGKey(3), 40)
+    want = jax.vmap(lambda o, k: greedy_action(cfg, mem, o, k)[0])(obs, keys)
+    for flag in (True, jnp.asarray(True)):
+        got = jax.vmap(lambda o, k: explore_action(cfg, run, mem, o, k, flag))(obs, keys)
+        np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+    explored = jax.vmap(lambda o, k: explore_action(cfg, run, mem, o, k, False))(obs, keys)
+    assert not np.array_equal(np.asarray(explored), np.asarray(want))   # epsilon 0.9
+
+
+@pytest.mark.parametrize("continuous", [False, True])
+def test_block_evaluations_are_evaluate_episode_for_episode(continuous):
+    """``make_train``'s blocks run their evaluation episodes through the training rollout
+    (greedy): the results are ``evaluate``'s on the same memory and key, bit for bit -- for
+    the first evaluation (``init`` calls ``evaluate``) and for a later block. Training
+    episodes are capped below the evaluation's cap (the rollout's buffer is shorter)."""
+    env = MountainCar(continuous=continuous)
+    cfg = HedgerConfig.for_env(env, capacity=2000, bandwidth=0.05,
+                               **({"action_scale": 0.5} if continuous else {}))
+    run = RunConfig(n_blocks=2, episodes_per_block=2, eval_episodes=9, eval_max_steps=150,
+                    train_max_steps=120)
+    tr = make_train(env, cfg, run)
+    key = jax.random.PRNGKey(11)
+    state0, r0 = jax.jit(tr.init)(key)
+    _, results = jax.jit(tr.train)(key)
+    state1, r1 = jax.jit(tr.run_block)(state0)
+    k_eval = jax.random.split(state0.key, 3)[2]
+    ref = jax.jit(lambda m, k: evaluate(env, env.default_params(), cfg, m, k, 9, 150,
+                                        refresh=False))(state1.memory, k_eval)
+    for got, want in ((jax.tree_util.tree_map(lambda x: x[0], results), r0),
+                      (jax.tree_util.tree_map(lambda x: x[1], results), r1)):
+        for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want)):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    np.testing.assert_array_equal(np.asarray(r1.evaluation.mean_steps),
+                                  np.asarray(ref.mean_steps))
+    np.testing.assert_array_equal(np.asarray(r1.evaluation.success_rate),
+                                  np.asarray(ref.success_rate))
+    assert int(r1.episodes) == 2 and int(state1.memory.size) > 0
