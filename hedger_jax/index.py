@@ -866,6 +866,14 @@ def _scan(config, geo: Geometry, index: GridIndex, head, z, lv, tab_start, tab_l
         p = p0 + jnp.arange(width, dtype=jnp.int32)                  # (width,)
         columns = _candidate_columns
         slot, d2, ok = candidates(p, columns)
+        if L > 1:
+            # Several levels: the kept candidates are carried as sequence positions (unique per
+            # query, free), and only the k kept at the end become slots, instead of gathering
+            # the slot of every candidate (192 per query in the first trip). Same selection
+            # (payloads do not order it), same slots. Paired, bit-identical, 2-core CPU:
+            # batched predictions 1.05x at 3e5 slots, selection 1.11x at 1e6; training
+            # discrete 1.06x at 3e5, 1.03x at 1e6, continuous 0.95-1.03x at 3e5.
+            slot = p
         # Only candidates nearer than the current k-th can enter (an equal one would lose to
         # the earlier entry anyway): later trips hand top_k few finite values (it is cheap on
         # those, ~1 us per row, and ~40 ns per finite value in random order).
@@ -957,6 +965,7 @@ def _scan(config, geo: Geometry, index: GridIndex, head, z, lv, tab_start, tab_l
 
     _, best_d2, best_idx = batch_cond(carry[0] < total, rest, lambda c: c, carry,
                                       compact=_REST_GROUP)
+    best_idx = candidates(best_idx, _candidate_columns)[0]            # positions -> slots
     return best_idx, best_d2
 
 
