@@ -15,8 +15,10 @@ Design (all shapes static, so everything jits and vmaps; N = capacity, d = dim, 
   so the points within radius_l lie in the query's cell or a neighbour along every dimension;
   one "contiguous" state dimension (the widest) is cut 4x finer and is the fastest-varying
   part of a cell's key, so the cells along it form contiguous key ranges ("rows"): a query
-  scans at most 3^(d-1) rows per level. Rows whose cells are all farther than radius_l from
-  the query (e.g. the cells of another discrete action) are skipped. Level 0 (radius
+  scans at most 3^(d-1) rows per level (2 instead of 3 along a discrete action dimension
+  whose values lie more than two radii apart: ``paired_dims``). Rows whose cells are all
+  farther than radius_l from the query (e.g. the cells of another discrete action) are
+  skipped. Level 0 (radius
   ``k_thresh``) answers every query; finer levels exist for large capacities
   (``index_levels``) and make the cost independent of the density: a query uses the finest
   level whose rows hold at least ``level_target`` x k points (3k; 4.5k with three uniform
@@ -405,11 +407,35 @@ def cell_keys(level: Level, z: jax.Array) -> jax.Array:
     return key[0]
 
 
+def paired_dims(geo: Geometry) -> Tuple[bool, ...]:
+    """Per non-contiguous dimension (in dimension order): whether a query's rows take two
+    offsets along it instead of three -- a value dimension (one cell per discrete action
+    value) whose interior cells are wider than twice level 0's radius (with margin), so at
+    most one of the two cells beside the query's can hold a point within the radius (``level_rows``)."""
+    lv = geo.levels[0]
+    out = []
+    for i in range(len(lv.cells)):
+        if i == lv.contig:
+            continue
+        b = lv.bounds[i]
+        wide = all(hi - lo > 2.0 * lv.radius * (1.0 + 2 * _SIDE_MARGIN)
+                   for lo, hi in zip(b, b[1:]))
+        out.append(bool(b) and wide)
+    return tuple(out)
+
+
 @functools.lru_cache(maxsize=None)
-def _row_offsets(d: int) -> np.ndarray:
-    """{-1, 0, 1}^(d-1) as an int32 array (3^(d-1), d-1)."""
-    return np.array(list(itertools.product((-1, 0, 1), repeat=d - 1)),
-                    dtype=np.int32).reshape(3 ** (d - 1), d - 1)
+def _row_offsets(paired: Tuple[bool, ...]) -> np.ndarray:
+    """The rows' offsets along the non-contiguous dimensions: the product of {-1, 0, 1} per
+    dimension, or {0, 1} where ``paired`` (shifted by the query's lower-or-upper choice) ->
+    int32 (rows, d-1), in ascending key order."""
+    sets = [(0, 1) if p else (-1, 0, 1) for p in paired]
+    return np.array(list(itertools.product(*sets)), dtype=np.int32).reshape(-1, len(paired))
+
+
+def n_rows(geo: Geometry) -> int:
+    """Rows a query scans per level: 3 per non-contiguous dimension, 2 per paired one."""
+    return int(np.prod([2 if p else 3 for p in paired_dims(geo)], dtype=np.int64))
 
 
 def _stacked(geo: Geometry, name: str, i: int) -> np.ndarray:
@@ -418,29 +444,44 @@ def _stacked(geo: Geometry, name: str, i: int) -> np.ndarray:
 
 
 def level_rows(geo: Geometry, z: jax.Array):
-    """The rows of query z (d,) at every level: (first key, last key, live), each (L, 3^(d-1)).
+    """The rows of query z (d,) at every level: (first key, last key, live), each
+    (L, ``n_rows(geo)``), in ascending key order.
 
     Row r covers the cells with the r-th combination of offsets {-1, 0, 1} from the query's
-    cell along the non-contiguous dimensions and, along the contiguous one, every cell that
-    holds points within the level's radius. A row is not live when it is off the grid, or all
-    of its cells are farther than the radius from the query. All levels at once (a handful of
-    operations whatever their number).
+    cell along the non-contiguous dimensions -- {0, 1} shifted by -1 where the cell below lies
+    within the level's radius, along a ``paired_dims`` dimension -- and, along the contiguous
+    one, every cell that holds points within the level's radius. A row is not live when it is
+    off the grid, or all of its cells are farther than the radius from the query. All levels
+    at once (a handful of operations whatever their number).
+
+    Paired value dimensions (e.g. mountain car's three discrete actions: 6 rows, not 9) leave
+    out a row that could never be live, so a query does a third less row work: paired
+    against three offsets, bit-identical (dead rows hold no candidates, so every candidate
+    keeps its position), 2-core CPU: batched selection 1.20x at 1e3 slots, 1.12x at 1e4;
+    predictions 1.13x at 3e5, 1.08x at 1e4; discrete training 1.21x at 2e4, 1.08x at 3e5.
     """
     d = z.shape[0]
     L = len(geo.levels)
     contig = geo.levels[0].contig
     radius = jnp.asarray([lv.radius * (1.0 + 0.5 * _SIDE_MARGIN) for lv in geo.levels],
                          jnp.float32)[:, None]                              # (L, 1)
-    offs = jnp.asarray(_row_offsets(d))                                      # (R, d-1)
+    paired = paired_dims(geo)
+    offs = jnp.asarray(_row_offsets(paired))                                 # (R, d-1)
     base = jnp.zeros((L, offs.shape[0]), jnp.int32)
     gap2 = jnp.zeros((L, offs.shape[0]), jnp.float32)
     live = jnp.ones((L, offs.shape[0]), bool)
 
     for col, i in enumerate(j for j in range(d) if j != contig):
         cells = jnp.asarray(_stacked(geo, "cells", i), jnp.int32)[:, None]
-        rc = _coord(geo.levels, i, jnp.broadcast_to(z[i], (L, 1))) + offs[None, :, col]
-        live = live & (rc >= 0) & (rc < cells)
+        rc = _coord(geo.levels, i, jnp.broadcast_to(z[i], (L, 1)))          # (L, 1)
         b = geo.levels[0].bounds[i]
+        if paired[col]:
+            # Rows (c - 1, c) where the cell below lies within the level's radius, else
+            # (c, c + 1): both are never within it (cells wider than two radii).
+            below = jnp.asarray((-np.inf,) + tuple(b), jnp.float32)[jnp.clip(rc, 0, len(b))]
+            rc = rc - (z[i] - below <= radius).astype(jnp.int32)
+        rc = rc + offs[None, :, col]
+        live = live & (rc >= 0) & (rc < cells)
         if b:
             edges = jnp.asarray((-np.inf,) + tuple(b) + (np.inf,), jnp.float32)
             cc = jnp.clip(rc, 0, len(b))

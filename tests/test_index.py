@@ -627,13 +627,20 @@ def test_multi_level_dense_and_sparse_queries_match_brute():
     assert not accepted.all()                   # some query was rescanned at level 0
 
 
-def test_off_grid_discrete_actions_are_still_found():
+@pytest.mark.parametrize("bandwidth, paired", [(0.2, True), (0.28, False)])
+def test_off_grid_discrete_actions_are_still_found(bandwidth, paired):
     """One cell per discrete action value; a stored point or a query with an action between
     the values (the low-level API allows it) is still exact (cells adjacent in the action
-    dimension are scanned when near enough)."""
+    dimension are scanned when near enough): with cells wider than two radii (k_thresh 0.43,
+    spacing 1), where a query's rows take the cell below or the one above (``paired_dims``),
+    and narrower (k_thresh 0.60), where they take both."""
     rng = np.random.default_rng(8)
-    cb, cg = _pair(bandwidth=0.2)                             # k_thresh 0.43 < 0.5 spacing
-    assert gi.geometry(cg).levels[0].bounds[2] == (-0.5, 0.5)
+    cb, cg = _pair(bandwidth=bandwidth)
+    geo = gi.geometry(cg)
+    assert geo.levels[0].bounds[2] == (-0.5, 0.5)
+    assert gi.paired_dims(geo) == (False, paired) and gi.n_rows(geo) == (6 if paired else 9)
+    assert gi.level_rows(geo, jnp.zeros(3, jnp.float32))[0].shape == (len(geo.levels),
+                                                                 gi.n_rows(geo))
     pts = _uniform(rng, 800)
     pts[::4, 2] = rng.choice([-0.55, -0.45, 0.45, 0.52, 0.3], size=len(pts[::4]))
     queries = np.concatenate([pts[:30], _uniform(rng, 30)])
