@@ -1206,7 +1206,16 @@ def select(config, points: jax.Array, head: jax.Array, index: GridIndex, z: jax.
     rows = computed_once(jnp.stack([first, last, live.astype(jnp.int32)]))
     first, last, live = rows[0], rows[1], rows[2] != 0
     if geo.recent:
-        rec_start, rec_len = _recent_segments(geo, index, first[0], last[0], live[0])
+        # A merged index (no writes since the merge: every refresh that merges, e.g. a memory
+        # indexed once and then only queried) has no recent segments; a branch on the
+        # memory's n_new (not per query: one branch for a batch sharing the memory) skips
+        # their lookups. Batched selection at 1e3 slots 1.07-1.13x; training (where n_new is
+        # rarely 0) 0.98x / 1.09x discrete / continuous at 2e4, within noise (paired,
+        # bit-identical, 2-core CPU).
+        zs = jnp.zeros(first.shape[1:], jnp.int32)
+        rec_start, rec_len = jax.lax.cond(
+            index.n_new > 0, lambda a: _recent_segments(geo, index, *a), lambda a: (zs, zs),
+            (first[0], last[0], live[0]))
     else:
         rec_start = rec_len = jnp.zeros(first.shape[1:], jnp.int32)
     lv, tab_start, tab_len = _choose_level(geo, index, first, last, live, k)
