@@ -9,8 +9,9 @@ that ``hedger_jax.runtime`` adds by default on the CPU; ``HEDGER_JAX_LOOP_KERNEL
 out), but only a loop that contains no custom call, no sort and no batched matrix product.
 ``lax.top_k`` is a custom call on the CPU. So, with the flag:
 
-* ``smallest_k`` finds the k-th smallest value by a binary search over the float bits (up
-  to 31 counting passes, one reduction each, in a loop the compiler does not unroll), then
+* ``smallest_k`` finds the k-th smallest value by a search over the float bits (counting
+  passes, one reduction each, cutting at value midpoints first, then halving the bits; in
+  a loop the compiler does not unroll), then
   keeps the entries below it and the first ties, compacted in position order: the same set
   as ``lax.top_k`` of the negated values (ties broken by lower position), not sorted. Single
   vectors and vmapped batches of any size (in big batches, which are not one kernel anyway,
@@ -35,6 +36,10 @@ from hedger_jax.runtime import loop_kernels_enabled
 #: From this many vmapped members on, ``smallest_k`` runs them one after another
 #: (``lax.map``) instead of as one batched search (see ``_smallest_k_fn``).
 MAP_MEMBERS = 64
+
+#: ``smallest_k``'s search takes this many steps at the midpoint of its range's *values*
+#: before it halves the range's float bits (see ``_smallest_k_by_count``).
+_VALUE_STEPS = 16
 
 #: Bits of +inf in float32: the largest key of a non-negative value (NaN counts as +inf).
 _INF_BITS = 0x7F800000
@@ -107,21 +112,37 @@ def _smallest_k_by_count(values: jax.Array, payload: jax.Array, k: int):
     # Non-negative floats order as their bits; -0.0 (sign bit set) is 0, NaN counts as +inf.
     bits = jnp.where(bits < 0, 0, jnp.minimum(bits, _INF_BITS))
 
-    # A cut key t with (#keys < t) <= k <= (#keys <= t), by halving [lo, hi], which always
+    # A cut key t with (#keys < t) <= k <= (#keys <= t), by narrowing [lo, hi], which always
     # holds the k-th smallest key: a key with exactly k keys at or below it ends the search
-    # early (usually after ~15 of the 31 halvings: the k-th and (k+1)-th smallest keys of
-    # continuous values are far apart in bits). A loop of unknown trip count, which the
-    # compiler does not unroll (unrolled, the kernels took several times longer to compile).
-    def halve(lohi):
-        lo, hi = lohi
-        mid = lo + (hi - lo) // 2
+    # early. The range starts at [0, largest finite key] when at least k keys are finite
+    # (else the cut is +inf), and the first ``_VALUE_STEPS`` steps cut it at the midpoint of
+    # its values, not of its bits: distances are spread evenly in value, so the k-th and
+    # (k+1)-th smallest separate after ~6 such steps instead of ~12 bit halvings (4096 rows
+    # of 192 candidates, 60-150 finite: mean 6.6 vs 12.4 steps; 1.11x for the selection).
+    # Every step keeps mid in [lo, hi - 1], so the range shrinks; values spread over many
+    # magnitudes fall back to bit halvings (at most _VALUE_STEPS + 31 steps). The same cut
+    # set, so the same entries: paired, bit-identical, 2-core CPU: training 1.02x discrete /
+    # continuous at 3e5 slots, batched predictions 1.01x. A loop of unknown trip count,
+    # which the compiler does not unroll (unrolled, the kernels took several times longer
+    # to compile).
+    finite = bits < _INF_BITS
+    enough_finite = jnp.sum(finite.astype(jnp.int32)) >= k
+    hi0 = jnp.where(enough_finite, jnp.max(jnp.where(finite, bits, 0)), _INF_BITS)
+    lo0 = jnp.where(enough_finite, 0, _INF_BITS)
+
+    def halve(c):
+        lo, hi, step = c
+        flo = jax.lax.bitcast_convert_type(lo, jnp.float32)
+        fhi = jax.lax.bitcast_convert_type(hi, jnp.float32)
+        vmid = jax.lax.bitcast_convert_type(flo + (fhi - flo) * 0.5, jnp.int32)
+        mid = jnp.where(step < _VALUE_STEPS, jnp.clip(vmid, lo, hi - 1), lo + (hi - lo) // 2)
         count = jnp.sum((bits <= mid).astype(jnp.int32))
         enough = count >= k
-        return jnp.where(count == k, mid, jnp.where(enough, lo, mid + 1)), \
-            jnp.where(enough, mid, hi)
+        return (jnp.where(count == k, mid, jnp.where(enough, lo, mid + 1)),
+                jnp.where(enough, mid, hi), step + 1)
 
-    _, kth = jax.lax.while_loop(lambda lh: lh[0] < lh[1], halve,
-                                (jnp.int32(0), jnp.int32(_INF_BITS)))
+    _, kth, _ = jax.lax.while_loop(lambda c: c[0] < c[1], halve,
+                                   (lo0, hi0, jnp.int32(0)))
     below = bits < kth
     tie = bits == kth
     need = k - jnp.sum(below.astype(jnp.int32))

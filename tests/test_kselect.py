@@ -25,7 +25,10 @@ def _cases(rng, n):
     few = np.full(n, np.inf, np.float32)
     few[rng.choice(n, 5, replace=False)] = rng.random(5)
     tiny = (rng.random(n) * 1e-38).astype(np.float32)               # subnormals
+    magnitudes = (10.0 ** rng.uniform(-40, 30, n)).astype(np.float32)    # 0 to 1e30
     return {"ties": ties, "spread": spread, "fewer than k finite": few,
+            "magnitudes": magnitudes, "exactly k finite": np.where(
+                np.arange(n) % 3 == 0, spread, np.inf).astype(np.float32),
             "zeros": np.zeros(n, np.float32), "subnormals": tiny,
             "ties with inf": np.where(rng.random(n) < 0.6, np.inf, ties).astype(np.float32)}
 
