@@ -89,6 +89,35 @@ def timeit(fn, min_time=0.5, max_reps=50):
             return dt / n, (time.process_time() - c0) / n
 
 
+def paired_rounds(fns, rounds=15, calls=3):
+    """Interleaved timing of several callables (blocking) in one process: ``rounds`` rounds,
+    each timing ``calls`` calls of every callable in turn (order reversed every other
+    round), after a warm-up call each. -> {name: (CPU seconds per call per round (list),
+    wall seconds per call per round (list))}. Ratios of the same round compare programs run
+    seconds apart, so they are robust to the machine's speed drifting (on the 2-core VM
+    the same program ran 20-30 % faster or slower from one minute or hour to the next)."""
+    for fn in fns.values():
+        jax.block_until_ready(fn())
+    cpu = {k: [] for k in fns}
+    wall = {k: [] for k in fns}
+    names = list(fns)
+    for r in range(rounds):
+        for k in (names if r % 2 == 0 else names[::-1]):
+            t0, c0 = time.perf_counter(), time.process_time()
+            for _ in range(calls):
+                jax.block_until_ready(fns[k]())
+            cpu[k].append((time.process_time() - c0) / calls)
+            wall[k].append((time.perf_counter() - t0) / calls)
+    return {k: (cpu[k], wall[k]) for k in fns}
+
+
+def ratio_stats(num, den):
+    """Median and quartiles of the per-round ratios num[i] / den[i]."""
+    r = np.asarray(num, float) / np.asarray(den, float)
+    q25, med, q75 = np.percentile(r, [25, 50, 75])
+    return {"median": float(med), "q25": float(q25), "q75": float(q75), "rounds": len(r)}
+
+
 #: Scaled action = action x this for continuous mountain car: the experiments' and the
 #: ``Hedger`` preset's setting (``experiments.figures.MOUNTAIN_CAR_CONTINUOUS``,
 #: ``hedger_jax.learner.ENV_PRESETS``). (Benchmarks before 2026-12-02 used raw actions,
@@ -141,10 +170,11 @@ def baseline_agent(cfg, z, v):
 
 
 # ---------------------------------------------------------------------- sections
-def bench_predict(caps, batch, rng, results):
+def bench_predict(caps, batch, rng, results, scaling=(10_000, 300_000)):
     rows = []
     queries, _ = fake_points(batch, rng)
     q = jnp.asarray(queries)
+    kept = {}                  # the grid programs of the capacity-scaling pair, kept for the end
     for cap in caps:
         z, v = fake_points(cap, rng)
         row = {"capacity": cap}
@@ -162,6 +192,8 @@ def bench_predict(caps, batch, rng, results):
             if kind == "grid":
                 row["mean_neighbours"] = float(jnp.mean(jax.jit(jax.vmap(
                     lambda zz: select_neighbours(cfg, mem, zz).mask.sum()))(q[:256])))
+                if cap in scaling:
+                    kept[cap] = functools.partial(f, mem, q)
             del mem
         cfg = mc_config(cap, "brute")
         ag = baseline_agent(cfg, z.astype(np.float64), v.astype(np.float64))
@@ -180,6 +212,16 @@ def bench_predict(caps, batch, rng, results):
         rows.append(row)
         print("predict", row, flush=True)
     results["predict"] = rows
+    if len(kept) == 2:
+        # Cost at the large capacity over the cost at the small one, the same batch of
+        # queries, timed in interleaved rounds (``paired_rounds``): the table's rates were
+        # measured minutes apart.
+        small, large = sorted(kept)
+        t = paired_rounds({"small": kept[small], "large": kept[large]})
+        results["predict_scaling"] = dict(
+            small=small, large=large, batch=batch, **ratio_stats(t["large"][0], t["small"][0]),
+            wall=ratio_stats(t["large"][1], t["small"][1]))
+        print("predict scaling", results["predict_scaling"], flush=True)
 
 
 def bench_select(caps, batch, rng, results):
@@ -193,22 +235,29 @@ def bench_select(caps, batch, rng, results):
         mem = filled_memory(cfg, z, v)
         jax.block_until_ready(mem)
         f = jax.jit(jax.vmap(lambda m, zz: select_neighbours(cfg, m, zz), (None, 0)))
-        dt, ct = timeit(lambda: f(mem, q))
         t0 = time.perf_counter()
         tree = cKDTree(z)
         t_tree = time.perf_counter() - t0
-        row = {"capacity": cap, "grid_per_s": batch / ct, "grid_per_wall_s": batch / dt,
-               "kdtree_build_s": t_tree}
-        for workers in (1, -1):
-            t0, c0, n = time.perf_counter(), time.process_time(), 0
-            while time.perf_counter() - t0 < 0.5:
-                tree.query(queries, k=cfg.max_neighbours, distance_upper_bound=cfg.k_thresh,
-                           workers=workers)
-                n += 1
-            row[f"kdtree_w{workers}_per_s"] = batch * n / (time.process_time() - c0)
-            row[f"kdtree_w{workers}_per_wall_s"] = batch * n / (time.perf_counter() - t0)
-        row["ratio_vs_kdtree_w1"] = row["grid_per_s"] / row["kdtree_w1_per_s"]
-        row["ratio_vs_kdtree_all"] = row["grid_per_s"] / row["kdtree_w-1_per_s"]
+
+        def kd(workers):
+            return lambda: tree.query(queries, k=cfg.max_neighbours,
+                                      distance_upper_bound=cfg.k_thresh, workers=workers)
+
+        # The grid and cKDTree in interleaved rounds (``paired_rounds``); rates are medians
+        # over the rounds, ratios the medians of the rounds' ratios.
+        t = paired_rounds({"grid": lambda: f(mem, q), "w1": kd(1), "w-1": kd(-1)},
+                          rounds=9 if batch < 4096 else 15)
+        row = {"capacity": cap, "grid_per_s": batch / np.median(t["grid"][0]),
+               "grid_per_wall_s": batch / np.median(t["grid"][1]), "kdtree_build_s": t_tree}
+        for workers in ("1", "-1"):
+            cpu, wall = t["w" + workers]
+            row[f"kdtree_w{workers}_per_s"] = batch / np.median(cpu)
+            row[f"kdtree_w{workers}_per_wall_s"] = batch / np.median(wall)
+            stats = ratio_stats(cpu, t["grid"][0])
+            name = "w1" if workers == "1" else "all"
+            row[f"ratio_vs_kdtree_{name}"] = stats["median"]
+            row[f"ratio_vs_kdtree_{name}_quartiles"] = [stats["q25"], stats["q75"]]
+            row[f"wall_ratio_vs_kdtree_{name}"] = ratio_stats(wall, t["grid"][1])["median"]
         # exactness spot check against cKDTree (distances; ties aside)
         out = f(mem, q[:256])
         dk, _ = tree.query(queries[:256], k=cfg.max_neighbours, distance_upper_bound=cfg.k_thresh)
@@ -418,16 +467,32 @@ def markdown(results) -> str:
                        f"{fmt(r['baseline_per_s'])} | {fmt(r.get('brute_ratio'), 1)} | "
                        f"{fmt(r.get('grid_ratio'), 1)} |")
         out.append("")
+        sc = results.get("predict_scaling")
+        if sc:
+            out += [f"Grid prediction cost at {sc['large']:,} slots over the cost at "
+                    f"{sc['small']:,}, the same {sc['batch']}-query batch, timed in {sc['rounds']} "
+                    f"interleaved rounds (per CPU-second): **{sc['median']:.2f}x** (quartiles "
+                    f"{sc['q25']:.2f}-{sc['q75']:.2f}; wall-clock {sc['wall']['median']:.2f}x). "
+                    "The rates above were measured minutes apart.", ""]
     if "select" in results:
         out += ["## Batched neighbour selection: grid index vs cKDTree.query (same points, "
                 "same queries)", "",
+                "The grid and cKDTree timed in interleaved rounds; rates are the rounds' "
+                "medians, ratios the medians of the rounds' ratios (quartiles in brackets; "
+                "wall-clock ratios in the JSON).", "",
                 "| capacity | grid /s | cKDTree 1 worker /s | cKDTree all cores /s | ratio vs 1 "
                 "worker | ratio vs all | tree build s | grid refresh (200 new) s | counts match |",
                 "|---|---|---|---|---|---|---|---|---|"]
+
+        def quart(r, name):
+            q = r.get(f"ratio_vs_kdtree_{name}_quartiles")
+            return f" ({q[0]:.2f}-{q[1]:.2f})" if q else ""
+
         for r in results["select"]:
             out.append(f"| {r['capacity']:,} | {fmt(r['grid_per_s'])} | "
                        f"{fmt(r['kdtree_w1_per_s'])} | {fmt(r['kdtree_w-1_per_s'])} | "
-                       f"{fmt(r['ratio_vs_kdtree_w1'], 2)} | {fmt(r['ratio_vs_kdtree_all'], 2)} | "
+                       f"{fmt(r['ratio_vs_kdtree_w1'], 2)}{quart(r, 'w1')} | "
+                       f"{fmt(r['ratio_vs_kdtree_all'], 2)}{quart(r, 'all')} | "
                        f"{fmt(r['kdtree_build_s'], 3)} | {fmt(r['refresh_200_new_s'], 4)} | "
                        f"{fmt(r['counts_match_kdtree'], 3)} |")
         out.append("")
@@ -513,7 +578,8 @@ def main(argv=None):
                           (False, 1_000_000, 900_000)]
         seed_counts = [1, 4, 16, 64]
     if "predict" in sections:
-        bench_predict(caps, batch, rng, results)
+        bench_predict(caps, batch, rng, results,
+                      scaling=(10_000, 100_000) if args.quick else (10_000, 300_000))
         results["maxrss_mb"]["predict"] = maxrss_mb()
     if "select" in sections:
         bench_select(caps, batch, rng, results)
