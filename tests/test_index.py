@@ -240,12 +240,30 @@ def test_one_level_appends_over_several_odd_chunks_match_brute():
 
 
 def test_direct_step_only_where_a_full_uniform_memory_mostly_fits_it():
-    """``index.direct_width``: min(chunk, k) for a one-level grid whose full uniform memory
-    puts ~90 % of queries' candidates within k (m + 1.28 sqrt(m) <= k), else 0 (denser
-    memories, several levels)."""
-    sparse = _cfg("grid", capacity=400, index_levels=1)
-    assert gi.direct_width(sparse) == min(gi.chunk_width(sparse), 16) > 0
+    """``index.direct_width``: for a one-level grid whose full uniform memory puts ~90 % of
+    queries' candidates within k (m + 1.28 sqrt(m) <= k), a multiple of 8 that ~99 % of
+    uniform queries' candidates fit, at most min(chunk, k) (exactly that with the config's
+    ``index_chunk``); else 0 (denser memories, several levels)."""
+    rng = np.random.default_rng(21)
+    for cap, k in ((100, 32), (200, 32), (400, 32), (400, 16)):
+        sparse = _cfg("grid", capacity=cap, index_levels=1, max_neighbours=k)
+        width = gi.direct_width(sparse)
+        assert 0 < width <= min(gi.chunk_width(sparse), k) and width % 8 == 0
+        geo, mg = gi.geometry(sparse), _memory(sparse, _uniform(rng, cap))
+
+        @jax.jit
+        @jax.vmap
+        def count(z):
+            first, last, live = gi.level_rows(geo, z)
+            return gi._choose_level(geo, mg.index, first, last, live, k)[2].sum()
+
+        counts = np.asarray(count(jnp.asarray(_uniform(rng, 4096))))
+        # (99 % for Poisson counts; a query's rows vary in extent, so the counts spread more)
+        assert np.mean(counts <= width) >= 0.95, (cap, width, np.bincount(counts))
+    narrow = _cfg("grid", capacity=100, index_levels=1, max_neighbours=32)
+    assert gi.direct_width(narrow) == 8 < min(gi.chunk_width(narrow), 32)
     assert gi.direct_width(_cfg("grid", capacity=400, index_levels=1, index_chunk=8)) == 8
+    assert gi.direct_width(_cfg("grid", capacity=400, index_levels=1, index_chunk=24)) == 16
     for dense in (_cfg("grid", capacity=2000, index_levels=1), _cfg("grid", capacity=200_000)):
         assert gi.direct_width(dense) == 0
 
