@@ -307,8 +307,31 @@ def episodes_per_call(cfg, minimum: int) -> int:
     return max(minimum, 2 * per_merge)
 
 
+class InterleavedBaseline:
+    """The NumPy/cKDTree baseline's episodes, one per call of ``step``, from ``agent`` (which
+    learns as it goes: episode i uses seed i, so every run does the same work), timed so
+    that ``time_training`` can alternate them with the JAX calls it times: both then see
+    the same minutes of this VM, whose speed drifts (the baseline's rate moved 207-297
+    points/s between runs an hour apart)."""
+
+    def __init__(self, agent, continuous, min_cpu, min_episodes):
+        self.agent, self.continuous = agent, continuous
+        self.min_cpu, self.min_episodes = min_cpu, min_episodes
+        self.points = self.cpu = self.wall = 0.0
+        self.episodes = 0
+
+    def done(self):
+        return self.episodes >= self.min_episodes and self.cpu >= self.min_cpu
+
+    def step(self):
+        c0 = time.process_time()
+        p, t = time_episodes(self.agent, 1, seed=self.episodes, continuous=self.continuous)
+        self.cpu += time.process_time() - c0
+        self.points, self.wall, self.episodes = self.points + p, self.wall + t, self.episodes + 1
+
+
 def time_training(cfg, continuous, mem, n_episodes, n_seeds=None, serial=None, min_cpu=2.0,
-                  max_reps=40, seed_mode="vmap"):
+                  max_reps=40, seed_mode="vmap", baseline=None):
     """(points per CPU-second, first-call seconds, points per wall-second). ``serial``:
     compile inside ``hedger_jax.runtime.serial_codegen`` (None: the library's auto policy,
     on the vmapped memory's largest array: n_seeds times one seed's). ``seed_mode``: with
@@ -319,7 +342,9 @@ def time_training(cfg, continuous, mem, n_episodes, n_seeds=None, serial=None, m
     Each timed call runs ``n_episodes`` from a fresh copy of ``mem`` (copied outside the
     timing) with its own key, repeated until ``min_cpu`` CPU-seconds (or ``max_reps`` calls):
     one call of a few episodes lasts ~20 ms at 20,000 slots, and single-call rates varied by
-    up to 1.4x between identical runs.
+    up to 1.4x between identical runs. ``baseline`` (an ``InterleavedBaseline``): one of its
+    episodes after each timed call, until both have their minimum (then the calls go on past
+    ``max_reps`` if the baseline needs it).
     """
     fn = episodes_fn(cfg, continuous, n_episodes)
     if n_seeds is not None and seed_mode == "map":
@@ -343,13 +368,16 @@ def time_training(cfg, continuous, mem, n_episodes, n_seeds=None, serial=None, m
     t_first = time.perf_counter() - t0
     n = wall = cpu = 0.0
     rep = 0
-    while (cpu < min_cpu and rep < max_reps) or rep == 0:
+    while (cpu < min_cpu and rep < max_reps) or rep == 0 or \
+            (baseline is not None and not baseline.done()):
         rep += 1
         m = fresh()
         t0, c0 = time.perf_counter(), time.process_time()
         _, pts = jax.block_until_ready(f(m, keys(rep)))
         wall, cpu = wall + time.perf_counter() - t0, cpu + time.process_time() - c0
         n += float(np.sum(np.asarray(pts)))
+        if baseline is not None and not baseline.done():
+            baseline.step()
     return n / cpu, t_first, n / wall
 
 
@@ -359,26 +387,26 @@ def bench_train(settings, rng, results, quick):
         z, v = fake_points(prefill, rng, continuous)
         row = {"actions": "continuous" if continuous else "discrete", "capacity": cap,
                "prefill": prefill}
+        # The baseline's episodes alternate with the calls of the last (headline) column.
+        base = InterleavedBaseline(
+            baseline_agent(mc_config(cap, "brute", continuous), z.astype(np.float64),
+                           v.astype(np.float64)),
+            continuous, min_cpu=0.5 if quick else 2.0, min_episodes=1 if quick else 2)
         for kind, serial in (("brute", False), ("grid", False), ("grid_serial", True)):
             if kind == "brute" and cap > 100_000:
                 continue
             cfg = mc_config(cap, kind.split("_")[0], continuous)
             n_eps = episodes_per_call(cfg, 2 if quick else 4)
             row[f"{kind}_episodes_per_call"] = n_eps
-            pps, t_first, wall = time_training(cfg, continuous, filled_memory(cfg, z, v), n_eps,
-                                               serial=serial, min_cpu=0.5 if quick else 2.0)
+            pps, t_first, wall = time_training(
+                cfg, continuous, filled_memory(cfg, z, v), n_eps, serial=serial,
+                min_cpu=0.5 if quick else 2.0, baseline=base if kind == "grid_serial" else None)
             row[f"{kind}_points_per_s"] = pps
             row[f"{kind}_points_per_wall_s"] = wall
             row[f"{kind}_first_call_s"] = t_first
-        cfg = mc_config(cap, "brute", continuous)
-        ag = baseline_agent(cfg, z.astype(np.float64), v.astype(np.float64))
-        c0, pts, dt, ep = time.process_time(), 0, 0.0, 0
-        while ep < (1 if quick else 2) or time.process_time() - c0 < (0.5 if quick else 2.0):
-            p, t = time_episodes(ag, 1, seed=ep, continuous=continuous)
-            pts, dt, ep = pts + p, dt + t, ep + 1
-        row["baseline_points_per_s"] = pts / (time.process_time() - c0)
-        row["baseline_points_per_wall_s"] = pts / dt
-        row["baseline_episodes"] = ep
+        row["baseline_points_per_s"] = base.points / base.cpu
+        row["baseline_points_per_wall_s"] = base.points / base.wall
+        row["baseline_episodes"] = base.episodes
         for kind in ("brute", "grid", "grid_serial"):
             if f"{kind}_points_per_s" in row:
                 row[f"{kind}_ratio"] = row[f"{kind}_points_per_s"] / row["baseline_points_per_s"]
@@ -504,7 +532,9 @@ def markdown(results) -> str:
                 "`Hedger.learn` does once the memory's largest array, the grid index's tables "
                 "included, reaches 512 KiB). Each timed call runs episodes from the same "
                 "stored points (the grid's: two merge periods of its recent list per call, "
-                "`episodes_per_call`, so the index merges are paid as in a long run).", "",
+                "`episodes_per_call`, so the index merges are paid as in a long run). The "
+                "baseline's episodes alternate with the serial column's calls (one after "
+                "each), so both are timed over the same minutes.", "",
                 "| actions | capacity | stored points | brute /s | grid /s | grid /s wall | "
                 "grid serial /s | grid serial /s wall | baseline /s | brute ratio | grid ratio | "
                 "grid serial ratio |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
