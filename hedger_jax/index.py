@@ -18,13 +18,12 @@ Design (all shapes static, so everything jits and vmaps; N = capacity, d = dim, 
   scans at most 3^(d-1) rows per level (2 instead of 3 along a discrete action dimension
   whose values lie more than two radii apart: ``paired_dims``). Rows whose cells are all
   farther than radius_l from the query (e.g. the cells of another discrete action) are
-  skipped. Level 0 (radius
-  ``k_thresh``) answers every query; finer levels exist for large capacities
-  (``index_levels``) and make the cost independent of the density: a query uses the finest
-  level whose rows hold at least ``level_target`` x k points (3k; 4.5k with three uniform
-  dimensions, e.g. continuous actions; one lookup of the cell tables per level), keeps the
-  k nearest, and accepts them if the k-th lies within that level's radius (then no point
-  outside the scanned rows can be nearer); otherwise it rescans at level 0 (rare).
+  skipped. Level 0 (radius ``k_thresh``) answers every query; finer levels exist for large
+  capacities (``index_levels``) and make the cost independent of the density: a query uses
+  the finest level whose rows hold at least ``level_target`` x k points (3k; 4.5k with three
+  uniform dimensions, e.g. continuous actions; one lookup of the cell tables per level),
+  keeps the k nearest, and accepts them if the k-th lies within that level's radius (then no
+  point outside the scanned rows can be nearer); otherwise it rescans at level 0 (rare).
 * **Cells.** A uniform dimension i gets a range [lo_i, hi_i] (``index_bounds``; default
   [0, 1] for state dimensions -- the scaling of ``HedgerConfig.for_env`` -- and the scaled
   action bounds for continuous actions); a cell coordinate is
@@ -411,7 +410,8 @@ def paired_dims(geo: Geometry) -> Tuple[bool, ...]:
     """Per non-contiguous dimension (in dimension order): whether a query's rows take two
     offsets along it instead of three -- a value dimension (one cell per discrete action
     value) whose interior cells are wider than twice level 0's radius (with margin), so at
-    most one of the two cells beside the query's can hold a point within the radius (``level_rows``)."""
+    most one of the two cells beside the query's can hold a point within the radius
+    (``level_rows``)."""
     lv = geo.levels[0]
     out = []
     for i in range(len(lv.cells)):
