@@ -15,7 +15,7 @@ FULL_POLICIES = ("error", "overwrite_oldest")
 NEIGHBOUR_INDEXES = ("auto", "brute", "grid")
 #: ``neighbour_index="auto"`` uses the grid index from ``AUTO_GRID_CAPACITY_LOW_DIM`` slots up
 #: for inputs of at most ``AUTO_GRID_LOW_DIM`` dimensions, measured with ``Hedger.learn`` on
-#: the 2-core CPU (README "Performance"): mountain car (d = 3) trained 1.4x faster than by
+#: the 2-core CPU (README, "Using the library"): mountain car (d = 3) trained 1.4x faster than by
 #: brute force at 512 slots, 5x at 1,000-2,000, 10x at 10,000; the corridor (d = 4) 1.8x at
 #: 4,000 and 1.0-2.2x per CPU-second (1.5-2.2x wall-clock) at 12,000. Higher-dimensional
 #: inputs (a query scans 3^(d-1) rows of cells) keep brute force up to ``AUTO_GRID_CAPACITY``
