@@ -456,6 +456,51 @@ def test_cell_borders_and_threshold_distance():
     assert a.mask.sum() > len(queries)
 
 
+@pytest.mark.parametrize("discrete", [False, True])
+def test_every_level_rows_hold_every_point_within_its_radius(discrete):
+    """``level_rows`` checked directly, without brute force: for queries anywhere (uniform,
+    on cell corners of the coarsest and finest level and one float32 step off them, on and
+    beyond the bounds) and points on, just inside and halfway inside each level's sphere in
+    400 directions, every point whose float32 squared distance the scan accepts (<= the
+    level's radius squared, ``index._sqdist``'s formula) has a cell key in a live row of that
+    level."""
+    rng = np.random.default_rng(11)
+    kw = dict(capacity=300_000, bandwidth=0.015, neighbour_index="grid", index_levels=3)
+    cfg = (HedgerConfig(2, 1, discrete_actions=DISCRETE, **kw) if discrete else
+           HedgerConfig(2, 1, action_low=(-0.1,), action_high=(0.1,), **kw))
+    geo = gi.geometry(cfg)
+    b = np.array(gi.default_bounds(cfg))
+    # Queries: uniform, on cell corners of level 0 and 2 (and one float32 step off them),
+    # near and beyond the bounds.
+    q = rng.uniform(b[:, 0], b[:, 1], (60, 3))
+    for lv in (geo.levels[0], geo.levels[-1]):
+        side = np.array([1.0 / s if s else 1.0 for s in lv.inv_side])
+        c = np.floor(rng.uniform(2, 8, (20, 3))) * side + np.array(lv.lo)
+        q = np.concatenate([q, c, np.nextafter(c.astype(np.float32), np.float32(9)),
+                            np.nextafter(c.astype(np.float32), np.float32(-9))])
+    q = np.concatenate([q, [b[:, 0] - 0.01, b[:, 1] + 0.005, b[:, 0]]])
+    if discrete:
+        q[:, 2] = rng.choice([-1.0, 0.0, 1.0], len(q))
+    q = q.astype(np.float32)
+    first, last, live = map(np.asarray, jax.jit(jax.vmap(lambda z: gi.level_rows(geo, z)))(
+        jnp.asarray(q)))
+    dirs = rng.normal(size=(400, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    for li, lv in enumerate(geo.levels):
+        r32 = np.float32(lv.radius)
+        pts = np.concatenate([(q[:, None] + s * lv.radius * dirs[None]).astype(np.float32)
+                              for s in (1.0, 1.0 - 6e-8, 0.5)], 1)          # (Q, P, 3)
+        d2 = (pts[..., 0] - q[:, None, 0]) ** 2
+        for j in (1, 2):
+            d2 = d2 + (pts[..., j] - q[:, None, j]) ** 2               # index._sqdist, float32
+        keys = np.asarray(gi.cell_keys(lv, jnp.asarray(pts.reshape(-1, 3).T))).reshape(d2.shape)
+        rows = live[:, li][:, None, :]
+        hit = ((keys[..., None] >= first[:, li][:, None, :])
+               & (keys[..., None] <= last[:, li][:, None, :]) & rows).any(-1)
+        missed = (d2 <= r32 * r32) & ~hit
+        assert not missed.any(), (li, q[np.nonzero(missed)[0][:3]], pts[missed][:3])
+
+
 def test_out_of_range_points_are_clamped_not_dropped():
     rng = np.random.default_rng(2)
     cb, cg = _pair()
