@@ -43,7 +43,8 @@ import numpy as np  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 
 from envs.mountain_car import MountainCar  # noqa: E402
-from hedger_jax.agent import RunConfig, explore_action, make_train, rollout, train_prefix  # noqa: E402
+from hedger_jax.agent import (RunConfig, make_train, rollout, train_prefix,  # noqa: E402
+                              training_act)
 from hedger_jax.config import HedgerConfig  # noqa: E402
 from hedger_jax.memory import (init_memory, largest_array_bytes, refresh_index,  # noqa: E402
                                select_neighbours)
@@ -286,11 +287,9 @@ def episodes_fn(cfg, continuous, n_episodes):
         k1, k2 = jax.random.split(key)
         obs0, s0 = env.reset(k1, params)
 
-        def act(k, obs, act_state):
-            return explore_action(cfg, run, memory, obs, k), act_state
-
-        ep, length = rollout(env, params, act, k2, env.max_steps, obs0, s0)
-        return refresh_index(cfg, train_prefix(cfg, memory, ep, length)), length
+        out = rollout(env, params, training_act(cfg, run, memory), k2, env.max_steps, obs0, s0)
+        ep, length = out[0], out[1]
+        return refresh_index(cfg, train_prefix(cfg, memory, ep, length, *out[2:])), length
 
     def run_eps(memory, key):
         memory, lengths = jax.lax.scan(one, memory, jax.random.split(key, n_episodes))

@@ -13,7 +13,7 @@ acts at random (``known`` is False).
 """
 from __future__ import annotations
 
-from typing import Callable, Tuple
+from typing import Callable, NamedTuple, Tuple
 
 import jax
 import jax.numpy as jnp
@@ -21,7 +21,18 @@ import jax.numpy as jnp
 from hedger_jax import rng
 from hedger_jax.config import HedgerConfig
 from hedger_jax.memory import Memory
-from hedger_jax.predict import predict
+from hedger_jax.predict import Prediction, predict_detailed
+
+
+class GreedySets(NamedTuple):
+    """Neighbour sets a greedy search found (as ``replay_cache`` stores them: the slots of K
+    in canonical order, then -1). candidates: int32 (n, k), K of each of
+    ``greedy_candidates``; chosen: int32 (k,), K of the action taken; has_chosen: bool (),
+    whether ``chosen`` is known (not for a random action taken when nothing was known)."""
+
+    candidates: jax.Array
+    chosen: jax.Array
+    has_chosen: jax.Array
 
 _NEG = -jnp.inf
 
@@ -70,18 +81,29 @@ def search_grid(low: float, high: float, n_samples: int) -> jax.Array:
     return jnp.linspace(low, high, n_samples, dtype=jnp.float32)
 
 
-def search_1d(f: Callable[[jax.Array], Tuple[jax.Array, jax.Array]], low: float, high: float,
-              n_samples: int, iters: int, tol: float, initial=None, with_count: bool = False):
-    """Maximise f over [low, high]; f: x () -> (value (), known ()).
+def search_1d(f: Callable[[jax.Array], Tuple[jax.Array, ...]], low: float, high: float,
+              n_samples: int, iters: int, tol: float, initial=None, with_count: bool = False,
+              with_aux: bool = False):
+    """Maximise f over [low, high]; f: x () -> (value (), known ()), or with ``with_aux``
+    (value (), known (), aux): aux any pytree that f computes along (e.g. a neighbour set).
 
     ``initial``: optional (values (n_samples,), known (n_samples,)) of f at
     ``search_grid(low, high, n_samples)``, when the caller evaluated them in a batch of its own.
     Returns (x_best (), f_best (), any_known ()): the best evaluated sample; with
-    ``with_count`` also the number of refinement evaluations (int32 (), at most ``iters``).
+    ``with_count`` also the number of refinement evaluations (int32 (), at most ``iters``);
+    with ``with_aux`` then also (aux of the grid's samples, leading axis n_samples; aux of the
+    best sample).
     """
     n_total = n_samples + iters
     grid = search_grid(low, high, n_samples)
-    f0, k0 = jax.vmap(f)(grid) if initial is None else initial
+    if not with_aux:
+        g = f
+        f = lambda x: tuple(g(x)) + (None,)  # noqa: E731
+    if initial is None:
+        f0, k0, aux0 = jax.vmap(f)(grid)
+    else:
+        f0, k0 = initial[0], initial[1]
+        aux0 = initial[2] if len(initial) > 2 else None
     xs = jnp.zeros((n_total,), jnp.float32).at[:n_samples].set(grid)
     fs = jnp.full((n_total,), _NEG, jnp.float32).at[:n_samples].set(f0)
     filled = jnp.arange(n_total) < n_samples
@@ -96,14 +118,18 @@ def search_1d(f: Callable[[jax.Array], Tuple[jax.Array, jax.Array]], low: float,
         return vertex, concave & ~jnp.any(filled & (xs == vertex))
 
     def body(carry):
-        i, xs, fs, filled, prev, vertex, _, any_known = carry
-        fv, kv = f(vertex)
+        i, xs, fs, filled, prev, vertex, _, any_known, best_f, best_aux = carry
+        fv, kv, av = f(vertex)
         slot = n_samples + i
         xs, fs, filled = xs.at[slot].set(vertex), fs.at[slot].set(fv), filled.at[slot].set(True)
         any_known = any_known | kv
+        # The best sample so far, as the final argmax picks it (the first of equal maxima).
+        better = fv > best_f
+        best_f = jnp.where(better, fv, best_f)
+        best_aux = jax.tree_util.tree_map(lambda a, b: jnp.where(better, a, b), av, best_aux)
         nxt, worth = propose(xs, fs, filled)
         go = worth & (i + 1 < iters) & ~(jnp.abs(vertex - prev) < tol)
-        return (i + 1, xs, fs, filled, vertex, nxt, go, any_known)
+        return (i + 1, xs, fs, filled, vertex, nxt, go, any_known, best_f, best_aux)
 
     # A while loop, not a fixed-length scan: a search that has converged (or found no concave
     # bracket, e.g. while nothing is known) stops paying for evaluations. Each evaluation is
@@ -111,14 +137,15 @@ def search_1d(f: Callable[[jax.Array], Tuple[jax.Array, jax.Array]], low: float,
     # is never made (same result as evaluating it, as in the paper's loop). Under vmap the
     # loop runs until every search is done; the result is the same either way.
     vertex, worth = propose(xs, fs, filled)
+    b0 = jnp.argmax(jnp.where(filled, fs, _NEG))
     init = (jnp.zeros((), jnp.int32), xs, fs, filled, jnp.float32(jnp.nan), vertex,
-            worth & (iters > 0), jnp.any(k0))
-    n_evals, xs, fs, filled, _, _, _, any_known = jax.lax.while_loop(lambda c: c[6], body,
-                                                                      init)
+            worth & (iters > 0), jnp.any(k0), fs[b0],
+            jax.tree_util.tree_map(lambda a: a[b0], aux0))
+    n_evals, xs, fs, filled, _, _, _, any_known, _, best_aux = jax.lax.while_loop(
+        lambda c: c[6], body, init)
     best = jnp.argmax(jnp.where(filled, fs, _NEG))
-    if with_count:
-        return xs[best], fs[best], any_known, n_evals
-    return xs[best], fs[best], any_known
+    out = (xs[best], fs[best], any_known) + ((n_evals,) if with_count else ())
+    return out + ((aux0, best_aux) if with_aux else ())
 
 
 def maximise_1d(f: Callable[[jax.Array], jax.Array], low: float, high: float,
@@ -128,19 +155,26 @@ def maximise_1d(f: Callable[[jax.Array], jax.Array], low: float, high: float,
     return x, fx
 
 
+def _packed(p: Prediction) -> jax.Array:
+    """K's slots, int32 (..., k): the real neighbours (canonical order), then -1."""
+    return jnp.where(p.mask, p.indices, -1)
+
+
 def _discrete_values(config: HedgerConfig, memory: Memory, state: jax.Array):
+    """-> (actions (n, A), values (n,), known (n,), K of each (n, k) as ``_packed``)."""
     actions = jnp.asarray(config.discrete_actions, jnp.float32)          # (n, A)
-    values, known, _ = jax.vmap(lambda a: predict(config, memory, state, a))(actions)
-    return actions, values, known
+    p = jax.vmap(lambda a: predict_detailed(config, memory, state, a))(actions)
+    return actions, p.value, p.known, _packed(p)
 
 
-def _continuous_search(config: HedgerConfig, memory: Memory, state: jax.Array, initial=None):
+def _continuous_search(config: HedgerConfig, memory: Memory, state: jax.Array, initial=None,
+                       with_aux: bool = False):
     def f(a):
-        v, k, _ = predict(config, memory, state, a[None])
-        return v, k
+        p = predict_detailed(config, memory, state, a[None])
+        return (p.value, p.known, _packed(p)) if with_aux else (p.value, p.known)
 
     return search_1d(f, config.action_low[0], config.action_high[0], config.greedy_samples,
-                     config.greedy_iters, config.greedy_tol, initial)
+                     config.greedy_iters, config.greedy_tol, initial, with_aux=with_aux)
 
 
 def greedy_candidates(config: HedgerConfig) -> jax.Array:
@@ -168,7 +202,7 @@ def greedy_value(config: HedgerConfig, memory: Memory, state: jax.Array):
     whether any candidate was known.
     """
     if config.is_discrete:
-        _, values, known = _discrete_values(config, memory, state)
+        _, values, known, _ = _discrete_values(config, memory, state)
         return jnp.max(values), jnp.any(known)
     _, value, known = _continuous_search(config, memory, state)
     return value, known
@@ -184,15 +218,34 @@ def greedy_action_from_uniform(config: HedgerConfig, memory: Memory, state: jax.
     """``greedy_action`` with its randomness given: u float32 (``greedy_draws(config)``,) of
     U[0, 1) draws (tie-breaks, then the random action when nothing is known)."""
     if config.is_discrete:
-        actions, values, known = _discrete_values(config, memory, state)
+        return greedy_choice(config, memory, state, u)[:3]
+    # Without the neighbour sets: the search then carries none through its loop.
+    return _continuous_choice(config, u, *_continuous_search(config, memory, state))
+
+
+def greedy_choice(config: HedgerConfig, memory: Memory, state: jax.Array, u: jax.Array):
+    """``greedy_action_from_uniform`` and the neighbour sets its search found:
+    -> (action (A,), value (), known (), ``GreedySets``) for ``hedger_jax.replay_cache``."""
+    if config.is_discrete:
+        actions, values, known, sets = _discrete_values(config, memory, state)
         n = actions.shape[0]
         ties = values >= jnp.max(values)
         pick = jnp.argmax(jnp.where(ties, u[:n], -1.0))
         rand = jnp.minimum((u[n] * n).astype(jnp.int32), n - 1)
         any_known = jnp.any(known)
         idx = jnp.where(any_known, pick, rand)
-        return actions[idx], values[idx], any_known
-    x, value, any_known = _continuous_search(config, memory, state)
+        # Every action of the set was evaluated: the chosen one's K is known either way.
+        return actions[idx], values[idx], any_known, GreedySets(sets, sets[idx],
+                                                                jnp.ones((), bool))
+    x, value, any_known, sets, best = _continuous_search(config, memory, state, with_aux=True)
+    # A random action (nothing known) was not evaluated: its K is not known.
+    return _continuous_choice(config, u, x, value, any_known) + (
+        GreedySets(sets, best, any_known),)
+
+
+def _continuous_choice(config: HedgerConfig, u: jax.Array, x, value, any_known):
+    """The search's best sample, or (nothing known) a uniformly random action from u:
+    -> (action (A,), value (), known ())."""
     low = jnp.asarray(config.action_low, jnp.float32)
     high = jnp.asarray(config.action_high, jnp.float32)
     rand = jnp.minimum(low + u * (high - low), high)

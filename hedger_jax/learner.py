@@ -39,7 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from hedger_jax.agent import (Evaluation, RunConfig, evaluate, explore_action, rollout,
-                              train_prefix, transitions_from_demonstrations)
+                              train_prefix, training_act, transitions_from_demonstrations)
 from hedger_jax.checkpoint import load_checkpoint, save_checkpoint
 from hedger_jax.config import HedgerConfig
 from hedger_jax.greedy import greedy_action
@@ -116,11 +116,10 @@ def _learn_chunk(memory: Memory, key: jax.Array, env_params: Any, budget: jax.Ar
         mem = refresh_index(config, mem)
         obs0, s0 = env.reset(k_reset, env_params)
 
-        def act(k, obs, act_state):  # the memory is read, not carried, by the rollout loop
-            return explore_action(config, run, mem, obs, k), act_state
-
-        ep, length = rollout(env, env_params, act, k_run, max_steps, obs0, s0)
-        mem = train_prefix(config, mem, ep, length)
+        out = rollout(env, env_params, training_act(config, run, mem), k_run, max_steps, obs0,
+                      s0)
+        ep, length = out[0], out[1]
+        mem = train_prefix(config, mem, ep, length, *out[2:])
         ret = jnp.sum(jnp.where(ep.valid, ep.reward, 0.0))
         return (mem, key, steps + length, n + 1, lengths.at[n].set(length),
                 returns.at[n].set(ret))

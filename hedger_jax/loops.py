@@ -103,7 +103,7 @@ def _loop(fn: Callable) -> Callable:
 
 
 def batch_cond(pred: jax.Array, true_fn: Callable[[Any], Any], false_fn: Callable[[Any], Any],
-               operand: Any, *, compact: int = 0) -> Any:
+               operand: Any, *, compact: int = 0, equal: bool = False) -> Any:
     """``lax.cond(pred, true_fn, false_fn, operand)`` that stays cheap under ``vmap``.
 
     ``lax.cond`` with a batched predicate runs both branches for every member and selects,
@@ -117,10 +117,14 @@ def batch_cond(pred: jax.Array, true_fn: Callable[[Any], Any], false_fn: Callabl
     (gathered into groups of G, results scattered back): for a branch that few members of a
     large batch need, e.g. one query of 4096 that must be searched again. A batch of at most
     G members uses groups of min(G, 4) (``_SMALL_GROUP``); one of at most 4 runs whole.
+
+    equal (static bool): the branches give the same results (the true one is a shortcut),
+    so under ``vmap`` with a batched predicate only the false branch runs, for every member.
     """
     tfn, tconsts = _hoist_branch(true_fn, operand)
     ffn, fconsts = _hoist_branch(false_fn, operand)
-    return _cond(tfn, ffn, int(compact))(jnp.asarray(pred, bool), operand, tconsts, fconsts)
+    return _cond(tfn, ffn, int(compact), bool(equal))(jnp.asarray(pred, bool), operand,
+                                                       tconsts, fconsts)
 
 
 def _hoist_branch(fn: Callable, operand: Any):
@@ -176,7 +180,7 @@ def _compacted(axis_size: int, group: int, pred, operand, vt, tconsts, tc_b, fal
 _SMALL_GROUP = 4
 
 
-def _cond(tfn: Callable, ffn: Callable, compact: int = 0) -> Callable:
+def _cond(tfn: Callable, ffn: Callable, compact: int = 0, equal: bool = False) -> Callable:
     @custom_vmap
     def cond(pred, operand, tconsts, fconsts):
         return jax.lax.cond(pred, lambda o: tfn(o, *tconsts), lambda o: ffn(o, *fconsts),
@@ -193,6 +197,10 @@ def _cond(tfn: Callable, ffn: Callable, compact: int = 0) -> Callable:
         if not p_b:
             out = jax.lax.cond(pred, lambda o: vt(o, *tconsts), lambda o: vf(o, *fconsts),
                                operand)
+            return out, jax.tree_util.tree_map(lambda _: True, out)
+        if equal:
+            out = jax.vmap(ffn, in_axes=(0, *[0 if b else None for b in fc_b]),
+                           axis_size=axis_size)(operand, *fconsts)
             return out, jax.tree_util.tree_map(lambda _: True, out)
 
         group = compact if axis_size > compact else min(compact, _SMALL_GROUP)

@@ -8,7 +8,8 @@ import jax.numpy as jnp
 
 from hedger_jax.config import HedgerConfig
 from hedger_jax.lwr import kernel_weights, local_fit
-from hedger_jax.memory import Memory, scale_inputs, select_neighbours, squared_distances
+from hedger_jax.memory import (Memory, Neighbours, scale_inputs, select_neighbours,
+                               squared_distances)
 
 
 class Prediction(NamedTuple):
@@ -32,7 +33,13 @@ class Prediction(NamedTuple):
 
 def predict_scaled(config: HedgerConfig, memory: Memory, z: jax.Array) -> Prediction:
     """Algorithm 1 for a scaled query z (d,). See ``predict_detailed``."""
-    nb = select_neighbours(config, memory, z)
+    return predict_from_neighbours(config, memory, z, select_neighbours(config, memory, z))
+
+
+def predict_from_neighbours(config: HedgerConfig, memory: Memory, z: jax.Array,
+                            nb: Neighbours) -> Prediction:
+    """Algorithm 1 for a scaled query z (d,) whose neighbour set K is given (``nb``, in the
+    canonical order ``select_neighbours`` returns): the IVH test and the local fit."""
     zc = memory.points[:, nb.indices].T - z                  # (k, d), centred on the query
     zc = jnp.where(nb.mask[:, None], zc, 0.0)
     y = memory.values[nb.indices]

@@ -8,8 +8,9 @@ import jax.numpy as jnp
 
 from hedger_jax.config import HedgerConfig
 from hedger_jax.greedy import greedy_candidates, greedy_value_from
-from hedger_jax.memory import FLAG_NONFINITE, Memory, add_scaled, scale_inputs
-from hedger_jax.predict import predict_scaled
+from hedger_jax.memory import FLAG_NONFINITE, Memory, add_scaled, scale_inputs, select_neighbours
+from hedger_jax.predict import predict_from_neighbours, predict_scaled
+from hedger_jax.replay_cache import cached_neighbours
 
 
 class Transition(NamedTuple):
@@ -59,8 +60,11 @@ def region_update(memory: Memory, indices: jax.Array, weights: jax.Array, mask: 
     return memory._replace(values=values, flags=flags.astype(jnp.int32))
 
 
-def train_step(config: HedgerConfig, memory: Memory, transition: Transition):
+def train_step(config: HedgerConfig, memory: Memory, transition: Transition, cached=None):
     """Algorithm 2 for one experience -> (memory, TrainInfo). Jittable, vmappable.
+
+    ``cached``: optional neighbour sets found while acting (``replay_cache.replay_sets`` and
+    the window width), used instead of searching when valid: the same result, faster.
 
     q = Q(s, a) with its neighbour set K and weights kappa; q_next = max_a' Q(s', a')
     (0 if terminated); q_new = q + alpha (r + gamma q_next - q); (s, a) -> q_new is stored as
@@ -78,7 +82,12 @@ def train_step(config: HedgerConfig, memory: Memory, transition: Transition):
     acts = greedy_candidates(config)                                          # (n, A)
     zs = jnp.concatenate([z[None], scale_inputs(
         config, jnp.broadcast_to(t.next_obs, (acts.shape[0],) + t.next_obs.shape), acts)])
-    batch = jax.vmap(lambda zz: predict_scaled(config, memory, zz))(zs)
+    if cached is None:
+        batch = jax.vmap(lambda zz: predict_scaled(config, memory, zz))(zs)
+    else:
+        nb = cached_neighbours(config, memory, zs, cached,
+                               jax.vmap(lambda zz: select_neighbours(config, memory, zz)))
+        batch = jax.vmap(lambda zz, n: predict_from_neighbours(config, memory, zz, n))(zs, nb)
     p = jax.tree_util.tree_map(lambda x: x[0], batch)
     q_next, _ = greedy_value_from(config, memory, t.next_obs, batch.value[1:], batch.known[1:])
     q_next = jnp.where(jnp.asarray(t.terminated, bool), 0.0, q_next)

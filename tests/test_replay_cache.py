@@ -1,0 +1,234 @@
+"""The replay's reuse of the rollout's neighbour sets (``hedger_jax.replay_cache``): the merged
+sets equal a fresh search of the grown memory, entry for entry, on random and adversarial
+data (ties, points on the threshold, duplicates, crowded appends); every case it cannot
+answer falls back to the search; and training with the records equals training without."""
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import envs
+from hedger_jax import HedgerConfig
+from hedger_jax.agent import RunConfig, explore_action_recorded, rollout, train_prefix
+from hedger_jax.memory import add_scaled, init_memory, refresh_index, select_neighbours
+from hedger_jax.replay_cache import APPENDED_WIDTH, cached_neighbours
+
+K = 8
+
+
+def _cfg(kind, policy="error"):
+    return HedgerConfig(2, 1, capacity=600, bandwidth=0.1, max_neighbours=K,
+                        neighbour_index=kind, full_policy=policy)
+
+
+def _with_points(cfg, pts, size=None):
+    """A memory holding the scaled points pts (n, 3) in slots [0, n), indexed."""
+    n = len(pts)
+    points = np.zeros((3, cfg.capacity), np.float32)
+    points[:, :n] = np.asarray(pts, np.float32).T
+    values = np.zeros(cfg.capacity, np.float32)
+    values[:n] = np.random.default_rng(n).uniform(0, 1e-2, n)
+    mem = init_memory(cfg)._replace(points=jnp.asarray(points), values=jnp.asarray(values),
+                                    size=jnp.int32(n), head=jnp.int32(n % cfg.capacity))
+    # index=None: refresh_index builds the index of every stored point from scratch.
+    return _refresh(cfg, mem._replace(index=None)) if mem.index is not None else mem
+
+
+@functools.lru_cache(maxsize=None)
+def _refresher(cfg):
+    return jax.jit(lambda m: refresh_index(cfg, m, force=True))
+
+
+def _refresh(cfg, mem):
+    return _refresher(cfg)(mem)
+
+
+@functools.lru_cache(maxsize=None)
+def _appender(cfg):
+    """Appends scaled points (n, 3) one write at a time (not merged into the index)."""
+    return jax.jit(lambda m, zs: jax.lax.fori_loop(
+        0, zs.shape[0], lambda i, m: add_scaled(cfg, m, zs[i], jnp.float32(0.25)), m))
+
+
+def _memory(cfg, pts):
+    return _with_points(cfg, pts)
+
+
+def _packed(nb):
+    return np.where(np.asarray(nb.mask), np.asarray(nb.indices), -1)
+
+
+@functools.lru_cache(maxsize=None)
+def _searcher(cfg):
+    return jax.jit(lambda m, zs: jax.vmap(lambda z: select_neighbours(cfg, m, z))(zs))
+
+
+def _search(cfg, mem):
+    return functools.partial(_searcher(cfg), mem)
+
+
+@functools.lru_cache(maxsize=None)
+def _merger(cfg, width):
+    return jax.jit(lambda m, zs, sets, size0, ok: cached_neighbours(
+        cfg, m, zs, (sets, size0, ok, width),
+        jax.vmap(lambda z: select_neighbours(cfg, m, z))))
+
+
+def _merged(cfg, mem, zs, sets, size0, ok, width):
+    return _merger(cfg, width)(mem, zs, jnp.asarray(sets), jnp.int32(size0), jnp.asarray(ok))
+
+
+def _assert_same(a, b):
+    np.testing.assert_array_equal(np.asarray(a.mask), np.asarray(b.mask))
+    np.testing.assert_array_equal(_packed(a), _packed(b))
+    np.testing.assert_array_equal(np.asarray(a.sqdist), np.asarray(b.sqdist))
+
+
+def _scenario(seed, n_old=300, n_new=40):
+    """Old points, queries and appended points built to stress the merge: a lattice (many
+    equal distances), duplicates of old points, points at exactly the threshold from a
+    query, and a cluster of appended points around some queries."""
+    rng = np.random.default_rng(seed)
+    cfg = _cfg("brute")
+    r = np.float32(cfg.k_thresh)
+    lattice = np.stack(np.meshgrid(np.arange(6), np.arange(6), np.arange(3)), -1).reshape(-1, 3)
+    old = np.concatenate([rng.uniform(0, 1, (n_old - len(lattice), 3)),
+                          0.3 + 0.02 * lattice]).astype(np.float32)
+    queries = np.concatenate([rng.uniform(0, 1, (20, 3)), old[-10:],
+                              0.3 + 0.02 * lattice[:6] + 0.01]).astype(np.float32)
+    new = [queries[i] + rng.normal(0, 0.3 * r, 3) for i in rng.integers(0, len(queries), n_new)]
+    new += [old[5], old[-1], queries[0] + np.float32([r, 0, 0]), queries[1] - np.float32([0, r, 0])]
+    return old, queries, np.asarray(new, np.float32)
+
+
+@pytest.mark.parametrize("kind", ["brute", "grid"])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_merged_sets_equal_a_search_of_the_grown_memory(kind, seed):
+    old, queries, new = _scenario(seed)
+    cfg = _cfg(kind)
+    m0 = _memory(cfg, old)
+    m1 = _appender(cfg)(m0, jnp.asarray(new))   # appended, not merged: the recent list too
+    zs = jnp.asarray(queries)
+    cached = _packed(_search(cfg, m0)(zs))
+    want = _search(cfg, m1)(zs)
+    got = _merged(cfg, m1, zs, cached, m0.size, True, 64)
+    _assert_same(got, want)
+    assert np.mean(np.sum(cached >= 0, axis=1)) > 2       # the old points were found
+    # The appends changed some sets (else the test would not test the merge).
+    assert np.any(_packed(want) != cached)
+
+
+def test_crowded_queries_and_windows_too_small_fall_back_to_the_search():
+    old, queries, _ = _scenario(3)
+    cfg = _cfg("grid")
+    m0 = _memory(cfg, old)
+    # More than APPENDED_WIDTH appended points near query 0: the merge cannot take them all.
+    near = queries[0] + np.random.default_rng(0).normal(
+        0, 0.2 * cfg.k_thresh, (APPENDED_WIDTH + 5, 3)).astype(np.float32)
+    m1 = _appender(cfg)(m0, jnp.asarray(near))
+    zs = jnp.asarray(queries)
+    cached = _packed(_search(cfg, m0)(zs))
+    want = _search(cfg, m1)(zs)
+    _assert_same(_merged(cfg, m1, zs, cached, m0.size, True, 64), want)
+    # A window narrower than the appended count, or garbage sets marked unusable, or a
+    # memory that is not the recorded one grown: the search answers.
+    garbage = np.zeros_like(cached)
+    _assert_same(_merged(cfg, m1, zs, garbage, m0.size, True, 8), want)
+    _assert_same(_merged(cfg, m1, zs, garbage, m0.size, False, 64), want)
+    _assert_same(_merged(cfg, m1, zs, garbage, m1.size + 1, True, 64), want)
+
+
+def test_overwrite_oldest_never_uses_cached_sets():
+    old, queries, _ = _scenario(4)
+    cfg = _cfg("brute", policy="overwrite_oldest")
+    mem = _memory(cfg, old)
+    zs = jnp.asarray(queries)
+    want = _search(cfg, mem)(zs)
+    garbage = np.zeros((zs.shape[0], K), np.int32)
+    _assert_same(_merged(cfg, mem, zs, garbage, mem.size, True, 64), want)
+
+
+def test_vmapped_memories_that_disagree_all_search():
+    """Under vmap (seeds) members whose sets are and are not usable: every member gets the
+    search's answer (``batch_cond(..., equal=True)`` runs only the search)."""
+    old, queries, new = _scenario(5)
+    cfg = _cfg("brute")
+    m0 = _memory(cfg, old)
+    m1 = _appender(cfg)(m0, jnp.asarray(new))
+    zs = jnp.asarray(queries)
+    cached = _packed(_search(cfg, m0)(zs))
+    want = _search(cfg, m1)(zs)
+    fn = jax.jit(jax.vmap(lambda sets, ok: cached_neighbours(
+        cfg, m1, zs, (sets, m0.size, ok, 64), jax.vmap(lambda z: select_neighbours(cfg, m1, z)))))
+    got = fn(jnp.stack([jnp.asarray(cached), jnp.zeros_like(cached)]), jnp.asarray([True, False]))
+    for i in range(2):
+        _assert_same(jax.tree_util.tree_map(lambda x: x[i], got), want)
+
+
+@pytest.mark.parametrize("env_name,kind", [("mountain_car_discrete", "grid"),
+                                           ("mountain_car_continuous", "brute")])
+def test_training_with_the_records_equals_training_without(env_name, kind):
+    """Episodes from a seeded memory: the rollout records its sets, the replay merges them.
+    Same memory as the replay that searches every query (the same sets; the values to
+    float32 rounding, as XLA compiles the two programs' fits alike or nearly)."""
+    env = envs.make(env_name)
+    params = env.default_params()
+    kw = dict(action_scale=0.1) if "continuous" in env_name else {}
+    cfg = HedgerConfig.for_env(env, capacity=12_000, bandwidth=0.015, neighbour_index=kind,
+                               **kw)
+    rng = np.random.default_rng(0)
+    n = 10_000                          # dense enough that most greedy searches know a value
+    z = rng.uniform(0, 1, (n, 3)).astype(np.float32)
+    z[:, 2] = rng.choice([-1.0, 0.0, 1.0], n) if cfg.is_discrete else rng.uniform(-0.1, 0.1, n)
+    mem = _with_points(cfg, z)
+    run = RunConfig()
+
+    @functools.partial(jax.jit, static_argnums=2)
+    def episodes(memory, key, use):
+        def one(m, k):
+            k1, k2 = jax.random.split(k)
+            obs0, s0 = env.reset(k1, params)
+
+            def act(kk, obs, st):
+                a, rec = explore_action_recorded(cfg, run, m, obs, kk)
+                return a, st, rec
+
+            ep, length, rec = rollout(env, params, act, k2, 100, obs0, s0)
+            m = train_prefix(cfg, m, ep, length, rec if use else None)
+            return refresh_index(cfg, m), (length, jnp.sum(rec.has_chosen & rec.has_candidates))
+        return jax.lax.scan(one, memory, jax.random.split(key, 4))
+
+    a, (lengths, cached) = episodes(mem, jax.random.PRNGKey(1), False)
+    b, _ = episodes(mem, jax.random.PRNGKey(1), True)
+    assert int(jnp.sum(cached)) > 0.5 * int(jnp.sum(lengths))   # most steps used the cache
+    np.testing.assert_array_equal(np.asarray(a.points), np.asarray(b.points))
+    assert int(a.size) == int(b.size) == n + int(jnp.sum(lengths))
+    np.testing.assert_allclose(np.asarray(a.values), np.asarray(b.values), rtol=1e-6, atol=1e-9)
+
+
+def test_the_record_holds_the_sets_of_the_queries_it_names():
+    env = envs.make("mountain_car_continuous")
+    cfg = HedgerConfig.for_env(env, capacity=3000, bandwidth=0.015, action_scale=0.1,
+                               neighbour_index="brute")
+    rng = np.random.default_rng(1)
+    obs = jnp.asarray([-0.5, 0.0], jnp.float32)
+    from hedger_jax.memory import scale_inputs
+    s = np.asarray([-0.5, 0.0]) + rng.normal(0, [0.05, 0.004], (400, 2))
+    a = rng.uniform(-1, 1, (400, 1))
+    mem = _with_points(cfg, np.asarray(scale_inputs(cfg, jnp.asarray(s, jnp.float32),
+                                                    jnp.asarray(a, jnp.float32))))
+    for eps, key in ((0.0, 3), (1.0, 4)):
+        action, rec = jax.jit(lambda k: explore_action_recorded(
+            cfg, RunConfig(epsilon=eps), mem, obs, k))(jax.random.PRNGKey(key))
+        if eps == 1.0:                        # a random step searched nothing
+            assert not bool(rec.has_candidates) and not bool(rec.has_chosen)
+            continue
+        assert bool(rec.has_candidates) and bool(rec.has_chosen)
+        want = select_neighbours(cfg, mem, scale_inputs(cfg, obs, action))
+        np.testing.assert_array_equal(np.asarray(rec.chosen), _packed(want))
+        grid = jnp.linspace(-1.0, 1.0, cfg.greedy_samples, dtype=jnp.float32)[:, None]
+        want = jax.vmap(lambda a: select_neighbours(cfg, mem, scale_inputs(cfg, obs, a)))(grid)
+        np.testing.assert_array_equal(np.asarray(rec.candidates), _packed(want))
+        assert int(rec.size) == int(mem.size)
