@@ -34,7 +34,8 @@ from hedger_jax.greedy import (greedy_action, greedy_action_from_uniform, greedy
                                greedy_choice, greedy_draws)
 from hedger_jax.loops import masked_fori_loop
 from hedger_jax.memory import Memory, init_memory, refresh_index
-from hedger_jax.replay_cache import StepNeighbours, missing, replay_sets
+from hedger_jax.replay_cache import (REUSE_MIN_CAPACITY, StepNeighbours, missing, record_shapes,
+                                     replay_sets)
 from hedger_jax.replay_cache import usable as replay_cache_usable
 from hedger_jax.train import Transition, train_episode, train_step
 
@@ -57,8 +58,10 @@ class RunConfig:
     reuse_neighbours: the replay reuses the neighbour sets the rollout's greedy searches
       found (``hedger_jax.replay_cache``): the same sets, so the same run up to float32
       rounding (XLA compiles the larger program's arithmetic a little differently: a whole
-      ``train`` and the same run block by block then agree to rounding, not bit for bit);
-      continuous mountain car at 3e5 slots trains ~1.2x faster. False: every query searches.
+      ``train`` and the same run block by block then agree to rounding, not bit for bit).
+      None (default): for memories of at least ``replay_cache.REUSE_MIN_CAPACITY`` slots,
+      where searches are dear (mountain car, paired: 1.06-1.08x at 3e5 slots, 0.99x at 2e4,
+      and the program takes ~1-3 s longer to compile). False: every query searches.
     """
 
     epsilon: float = 0.2
@@ -70,7 +73,7 @@ class RunConfig:
     eval_episodes: int = 2500
     eval_max_steps: int = 200
     train_max_steps: Optional[int] = None
-    reuse_neighbours: bool = True
+    reuse_neighbours: Optional[bool] = None
 
     def __post_init__(self):
         if not (0.0 <= self.epsilon <= 1.0):
@@ -220,10 +223,15 @@ def training_act(config: HedgerConfig, run: RunConfig, memory: Memory, greedy_on
     """The rollout's ``act`` of phase two: ``explore_action`` (reading, not carrying, the
     memory), with the greedy searches' neighbour sets recorded for ``train_prefix`` when
     ``run.reuse_neighbours``."""
-    if run.reuse_neighbours and replay_cache_usable(config):
+    reuse = run.reuse_neighbours
+    if reuse is None:
+        reuse = config.capacity >= REUSE_MIN_CAPACITY
+    if reuse and replay_cache_usable(config):
         def act(key, obs, act_state):
             action, record = explore_action_recorded(config, run, memory, obs, key, greedy_only)
             return action, act_state, record
+
+        act.record_like = record_shapes(config, greedy_candidates(config).shape[0])
     else:
         def act(key, obs, act_state):
             return explore_action(config, run, memory, obs, key, greedy_only), act_state
@@ -236,8 +244,9 @@ def rollout(env: Any, env_params: Any, act, key: jax.Array, max_steps: int,
 
     Stops early (``lax.while_loop``) once the episode terminated or was truncated; steps
     after the end are padding (valid=False). Returns (Transition with leading axis
-    max_steps, length int32 ()). An ``act`` returning (a, act_state, record) has its records
-    kept too: then (Transition, length, records with leading axis max_steps).
+    max_steps, length int32 ()). An ``act`` with a ``record_like`` attribute (a pytree of
+    ``jax.ShapeDtypeStruct``, e.g. ``training_act``'s) returns (a, act_state, record) and has
+    its records kept too: then (Transition, length, records with leading axis max_steps).
     """
     buf, t, _, records = _rollout(env, env_params, act, key, max_steps, obs0, state0,
                                   act_state)
@@ -253,11 +262,9 @@ def _rollout(env: Any, env_params: Any, act, key: jax.Array, max_steps: int,
     limit = max_steps if limit is None else limit
     obs_dim = obs0.shape[-1]
     a_dim = env.action_space.action_dim
-    out_shape = jax.eval_shape(act, key, obs0, act_state)
-    records = None
-    if len(out_shape) == 3:
-        records = jax.tree_util.tree_map(
-            lambda x: jnp.zeros((max_steps,) + x.shape, x.dtype), out_shape[2])
+    like = getattr(act, "record_like", None)      # known without tracing act once more
+    records = None if like is None else jax.tree_util.tree_map(
+        lambda x: jnp.zeros((max_steps,) + x.shape, x.dtype), like)
     buf = Transition(
         obs=jnp.zeros((max_steps, obs_dim), jnp.float32),
         action=jnp.zeros((max_steps, a_dim), jnp.float32),
@@ -276,6 +283,10 @@ def _rollout(env: Any, env_params: Any, act, key: jax.Array, max_steps: int,
         k_t = rng.fold_in(key, t)
         k_act, k_step = rng.fold_in(k_t, 0), rng.fold_in(k_t, 1)
         out = act(k_act, obs, act_state)
+        if len(out) != (2 if records is None else 3):
+            raise ValueError("rollout: act must return (action, act_state), or (action, "
+                             "act_state, record) when it has a record_like attribute; got "
+                             f"{len(out)} outputs")
         action, act_state = out[0], out[1]
         if records is not None:
             records = jax.tree_util.tree_map(lambda b, x: b.at[t].set(x, mode="drop"),

@@ -11,7 +11,8 @@ import pytest
 
 import envs
 from hedger_jax import HedgerConfig
-from hedger_jax.agent import RunConfig, explore_action_recorded, rollout, train_prefix
+from hedger_jax.agent import (RunConfig, explore_action_recorded, rollout, train_prefix,
+                              training_act)
 from hedger_jax.memory import add_scaled, init_memory, refresh_index, select_neighbours
 from hedger_jax.replay_cache import APPENDED_WIDTH, cached_neighbours
 
@@ -183,7 +184,7 @@ def test_training_with_the_records_equals_training_without(env_name, kind):
     z = rng.uniform(0, 1, (n, 3)).astype(np.float32)
     z[:, 2] = rng.choice([-1.0, 0.0, 1.0], n) if cfg.is_discrete else rng.uniform(-0.1, 0.1, n)
     mem = _with_points(cfg, z)
-    run = RunConfig()
+    run = RunConfig(reuse_neighbours=True)      # on below REUSE_MIN_CAPACITY too
 
     @functools.partial(jax.jit, static_argnums=2)
     def episodes(memory, key, use):
@@ -191,11 +192,7 @@ def test_training_with_the_records_equals_training_without(env_name, kind):
             k1, k2 = jax.random.split(k)
             obs0, s0 = env.reset(k1, params)
 
-            def act(kk, obs, st):
-                a, rec = explore_action_recorded(cfg, run, m, obs, kk)
-                return a, st, rec
-
-            ep, length, rec = rollout(env, params, act, k2, 100, obs0, s0)
+            ep, length, rec = rollout(env, params, training_act(cfg, run, m), k2, 100, obs0, s0)
             m = train_prefix(cfg, m, ep, length, rec if use else None)
             return refresh_index(cfg, m), (length, jnp.sum(rec.has_chosen & rec.has_candidates))
         return jax.lax.scan(one, memory, jax.random.split(key, 4))
@@ -232,3 +229,30 @@ def test_the_record_holds_the_sets_of_the_queries_it_names():
         want = jax.vmap(lambda a: select_neighbours(cfg, mem, scale_inputs(cfg, obs, a)))(grid)
         np.testing.assert_array_equal(np.asarray(rec.candidates), _packed(want))
         assert int(rec.size) == int(mem.size)
+
+
+def test_rollout_refuses_an_act_whose_outputs_do_not_match_its_record_like():
+    env = envs.make("mountain_car_discrete")
+    params = env.default_params()
+    obs0, s0 = env.reset(jax.random.PRNGKey(0), params)
+
+    def act3(k, obs, st):                       # a record, but no record_like to size it
+        return jnp.zeros((1,)), st, jnp.zeros(())
+
+    with pytest.raises(ValueError, match="record_like"):
+        rollout(env, params, act3, jax.random.PRNGKey(1), 5, obs0, s0)
+
+
+def test_reuse_is_automatic_from_the_minimum_capacity():
+    from hedger_jax.replay_cache import REUSE_MIN_CAPACITY
+    env = envs.make("mountain_car_discrete")
+    small = HedgerConfig.for_env(env, capacity=1000)
+    big = HedgerConfig.for_env(env, capacity=REUSE_MIN_CAPACITY)
+    mem = init_memory(small)
+    assert not hasattr(training_act(small, RunConfig(), mem), "record_like")
+    assert hasattr(training_act(small, RunConfig(reuse_neighbours=True), mem), "record_like")
+    assert hasattr(training_act(big, RunConfig(), mem), "record_like")
+    assert not hasattr(training_act(big, RunConfig(reuse_neighbours=False), mem),
+                       "record_like")
+    ring = big.replace(full_policy="overwrite_oldest")
+    assert not hasattr(training_act(ring, RunConfig(reuse_neighbours=True), mem), "record_like")
