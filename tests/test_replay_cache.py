@@ -141,6 +141,32 @@ def test_crowded_queries_and_windows_too_small_fall_back_to_the_search():
     _assert_same(_merged(cfg, m1, zs, garbage, m1.size + 1, True, 64), want)
 
 
+def test_only_the_first_set_missing_searches_the_first_and_merges_the_rest():
+    """The replay after a random exploratory action: K of (s_t, a_t) was never searched
+    (``ok[0]`` False) while the candidates' sets were. Query 0 is searched, the others merged
+    (garbage where a set is unusable must never be used); a garbage set marked usable would
+    change the answer (so the test can fail)."""
+    old, queries, new = _scenario(6)
+    for kind in ("brute", "grid"):
+        cfg = _cfg(kind)
+        m0 = _memory(cfg, old)
+        m1 = _appender(cfg)(m0, jnp.asarray(new))
+        zs = jnp.asarray(queries)
+        cached = _packed(_search(cfg, m0)(zs))
+        want = _search(cfg, m1)(zs)
+        sets = cached.copy()
+        sets[0] = np.arange(K)                      # garbage: slots 0..K-1, not query 0's K
+        ok = np.ones(len(queries), bool)
+        ok[0] = False
+        _assert_same(_merged(cfg, m1, zs, sets, m0.size, ok, 64), want)
+        assert np.any(_packed(_merged(cfg, m1, zs, sets, m0.size, True, 64))[0]
+                      != _packed(want)[0])
+        # Another set missing (not only the first): every query is searched.
+        sets[3] = np.arange(K)
+        ok[3] = False
+        _assert_same(_merged(cfg, m1, zs, sets, m0.size, ok, 64), want)
+
+
 def test_overwrite_oldest_never_uses_cached_sets():
     old, queries, _ = _scenario(4)
     cfg = _cfg("brute", policy="overwrite_oldest")
@@ -164,6 +190,14 @@ def test_vmapped_memories_that_disagree_all_search():
     fn = jax.jit(jax.vmap(lambda sets, ok: cached_neighbours(
         cfg, m1, zs, (sets, m0.size, ok, 64), jax.vmap(lambda z: select_neighbours(cfg, m1, z)))))
     got = fn(jnp.stack([jnp.asarray(cached), jnp.zeros_like(cached)]), jnp.asarray([True, False]))
+    for i in range(2):
+        _assert_same(jax.tree_util.tree_map(lambda x: x[i], got), want)
+    # Per-query flags: one member with every set, one with all but the first (garbage there).
+    first_missing = np.array(cached)
+    first_missing[0] = np.arange(K)
+    ok = np.ones((2, len(queries)), bool)
+    ok[1, 0] = False
+    got = fn(jnp.stack([jnp.asarray(cached), jnp.asarray(first_missing)]), jnp.asarray(ok))
     for i in range(2):
         _assert_same(jax.tree_util.tree_map(lambda x: x[i], got), want)
 
