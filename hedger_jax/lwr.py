@@ -27,6 +27,18 @@ Numerics (float32): each scatter matrix is equilibrated (scaled to a unit diagon
 change of variables), then a tiny ridge is added before it is inverted. The values ``y``
 enter only linearly, so tiny values (gamma^100 ~ 1e-10) keep their relative precision: there
 is no absolute epsilon on them.
+
+Layout: internally the neighbours are feature-major, ``zt`` (d, k) (``local_fit_columns``;
+``local_fit`` takes (k, d) and transposes). Every sum over the k neighbours is then a
+reduction along the minor axis, which XLA's CPU backend vectorises across the neighbours;
+with (k, d) rows it emitted, for each of the ~30 sums, a scalar loop over the k neighbours
+that recomputed the centred rows (a profile of a single fit: two such loops were a quarter of
+its samples). The hull test compares every leverage with the query's (an ``any``) instead of
+taking their maximum first: the same answer for finite values (x -> (1 + tol)(1/n + x) is
+non-decreasing in floating point too), without XLA's NaN-propagating maximum, a serial loop
+over the k neighbours (13 % of the samples). Paired, 2-core Intel Xeon, 3e5 slots: one fit
+(``predict_from_neighbours``) 0.61 -> 0.39 us, 11 vmapped 6.0 -> 4.4 us; continuous
+mountain-car training 1.05x.
 """
 from __future__ import annotations
 
@@ -117,40 +129,41 @@ def _equilibrated_cholesky(C: jax.Array, ridge: float):
     return _cholesky(R), inv_s
 
 
-def _fit_parts(zc: jax.Array, y: jax.Array, w: jax.Array, m: jax.Array, ridge: float):
-    """Centroids and both scatter factors at once: -> (n, mean (d,), u (k, d) centred rows,
-    factor of C,
-    mean_w (d,), y_w, factor of C_w, c_w (d,)); m: mask as float (k,). A factor is
-    (L, inv_s) of ``_equilibrated_cholesky``."""
-    d = zc.shape[-1]
-    first = jnp.sum(jnp.concatenate([m[:, None] * zc, w[:, None] * zc, (w * y)[:, None],
-                                     m[:, None], w[:, None]], axis=-1), axis=0)
+def _fit_parts(zt: jax.Array, y: jax.Array, w: jax.Array, m: jax.Array, ridge: float):
+    """Centroids and both scatter factors at once, from feature-major neighbours zt (d, k):
+    -> (n, mean (d,), u (d, k) centred columns, factor of C, mean_w (d,), y_w, factor of
+    C_w, c_w (d,)); m: mask as float (k,). A factor is (L, inv_s) of
+    ``_equilibrated_cholesky``. Every sum runs over the minor (neighbour) axis."""
+    d = zt.shape[0]
+    first = jnp.sum(jnp.concatenate([m[None, :] * zt, w[None, :] * zt, (w * y)[None, :],
+                                     m[None, :], w[None, :]], axis=0), axis=-1)
     n, W = first[2 * d + 1], first[2 * d + 2]
     denom = jnp.concatenate([jnp.full((d,), jnp.maximum(n, 1.0)),
                              jnp.full((d + 1,), jnp.where(W > 0, W, 1.0))])
     means = first[:2 * d + 1] / denom                    # (mean, mean_w, y_w): one division
     mean, mean_w, y_w = means[:d], means[d:2 * d], means[2 * d]
-    u = (zc - mean) * m[:, None]
+    u = (zt - mean[:, None]) * m[None, :]
     sw = jnp.sqrt(w)
-    v = (zc - mean_w) * sw[:, None]
+    v = (zt - mean_w[:, None]) * sw[None, :]
     r = (y - y_w) * sw
-    rows = jnp.concatenate([u[:, :, None] * u[:, None, :], v[:, :, None] * v[:, None, :],
-                            (v * r[:, None])[:, :, None]], axis=-1)    # (k, d, 2d + 1)
-    second = jnp.sum(rows, axis=0)
+    rows = jnp.concatenate([u[:, None, :] * u[None, :, :], v[:, None, :] * v[None, :, :],
+                            (v * r[None, :])[:, None, :]], axis=1)     # (d, 2d + 1, k)
+    second = jnp.sum(rows, axis=-1)
     # Both scatter matrices factorised at once (one set of fused ops for the two).
     L, inv_s = _equilibrated_cholesky(jnp.stack([second[:, :d], second[:, d:2 * d]]), ridge)
     return n, mean, u, (L[0], inv_s[0]), mean_w, y_w, (L[1], inv_s[1]), second[:, 2 * d]
 
 
 def _hull(n, mean, u, chol, mask, tol):
-    """1/n + m'C^-1 m <= (1 + tol)(1/n + max_i u_i'C^-1 u_i), C^-1 through its factor."""
+    """1/n + m'C^-1 m <= (1 + tol)(1/n + max_i u_i'C^-1 u_i), C^-1 through its factor; u
+    (d, k). Written as "for some masked i, ... <= (1 + tol)(1/n + u_i'C^-1 u_i)": the same
+    answer for finite values (module doc), False without masked neighbours as before."""
     L, inv_s = chol
-    cols = jnp.concatenate([mean[None, :], u], axis=0) * inv_s       # (k + 1, d) scaled
-    y = _solve_lower(L, cols.T)                                         # (d, k + 1)
+    cols = jnp.concatenate([mean[:, None], u], axis=1) * inv_s[:, None]   # (d, k + 1)
+    y = _solve_lower(L, cols)                                           # (d, k + 1)
     q = _sum_small(y * y)                                               # (k + 1,)
     inv_n = 1.0 / jnp.maximum(n, 1.0)
-    leverage = jnp.where(mask, q[1:], -jnp.inf)
-    return inv_n + q[0] <= (1.0 + tol) * (inv_n + jnp.max(leverage))
+    return jnp.any(mask & (inv_n + q[0] <= (1.0 + tol) * (inv_n + q[1:])))
 
 
 def _intercept(mean_w, y_w, chol, cw):
@@ -174,14 +187,14 @@ def hull_contains(X: jax.Array, mask: jax.Array, ridge: float, tol: float) -> ja
     Inside iff e_0'(X'X)^-1 e_0 <= (1 + tol) * max_i x_i'(X'X)^-1 x_i over masked rows.
     """
     zero = jnp.zeros(X.shape[:1], X.dtype)
-    n, mean, u, chol, *_ = _fit_parts(X[:, 1:], zero, zero, mask.astype(X.dtype), ridge)
+    n, mean, u, chol, *_ = _fit_parts(X[:, 1:].T, zero, zero, mask.astype(X.dtype), ridge)
     return _hull(n, mean, u, chol, mask, tol)
 
 
 def weighted_intercept(X: jax.Array, y: jax.Array, w: jax.Array, ridge: float) -> jax.Array:
     """Intercept of the weighted least-squares fit of y (k,) on X = [1, zc] (k, p), weights
     w (k,) (zero on the rows to leave out)."""
-    *_, mean_w, y_w, chol_w, cw = _fit_parts(X[:, 1:], y, w, (w > 0).astype(X.dtype), ridge)
+    *_, mean_w, y_w, chol_w, cw = _fit_parts(X[:, 1:].T, y, w, (w > 0).astype(X.dtype), ridge)
     return _intercept(mean_w, y_w, chol_w, cw)
 
 
@@ -192,10 +205,18 @@ def local_fit(zc: jax.Array, y: jax.Array, w: jax.Array, mask: jax.Array, *,
     zc (k, d) neighbour - query; y (k,) values; w (k,) kernel weights (0 where masked);
     mask (k,) bool. Returns ``LocalFit(value (), inside ())``. Finite for any input that is
     finite (empty sets, duplicates, collinear points): the ridge keeps the inverses finite.
+    ``local_fit_columns`` with zc.T.
     """
+    return local_fit_columns(zc.T, y, w, mask, ridge=ridge, ivh_tol=ivh_tol)
+
+
+def local_fit_columns(zt: jax.Array, y: jax.Array, w: jax.Array, mask: jax.Array, *,
+                      ridge: float = 1e-6, ivh_tol: float = 1e-3) -> LocalFit:
+    """``local_fit`` from feature-major neighbours: zt (d, k) = neighbour - query, one column
+    per neighbour (the layout of ``Memory.points``' gathered columns); y, w, mask (k,)."""
     y = jnp.where(mask, y, 0.0)
     w = jnp.where(mask, w, 0.0)
-    n, mean, u, chol, mean_w, y_w, chol_w, cw = _fit_parts(zc, y, w, mask.astype(zc.dtype),
+    n, mean, u, chol, mean_w, y_w, chol_w, cw = _fit_parts(zt, y, w, mask.astype(zt.dtype),
                                                             ridge)
     return LocalFit(value=_intercept(mean_w, y_w, chol_w, cw),
                     inside=_hull(n, mean, u, chol, mask, ivh_tol))

@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 
 from hedger_jax.config import HedgerConfig
-from hedger_jax.lwr import kernel_weights, local_fit
+from hedger_jax.lwr import kernel_weights, local_fit_columns
 from hedger_jax.memory import (Memory, Neighbours, scale_inputs, select_neighbours,
                                squared_distances)
 
@@ -40,14 +40,16 @@ def predict_from_neighbours(config: HedgerConfig, memory: Memory, z: jax.Array,
                             nb: Neighbours) -> Prediction:
     """Algorithm 1 for a scaled query z (d,) whose neighbour set K is given (``nb``, in the
     canonical order ``select_neighbours`` returns): the IVH test and the local fit."""
-    zc = memory.points[:, nb.indices].T - z                  # (k, d), centred on the query
-    zc = jnp.where(nb.mask[:, None], zc, 0.0)
+    # Feature-major (d, k), centred on the query: the gathered columns of ``memory.points``
+    # as they come, and the layout whose sums over K XLA vectorises (``lwr`` module doc).
+    zt = memory.points[:, nb.indices] - z[:, None]
+    zt = jnp.where(nb.mask[None, :], zt, 0.0)
     y = memory.values[nb.indices]
     # Distances recomputed from the gathered points (one formula whatever the search method
     # computed), so brute force and the grid index give bit-identical fits.
-    sqdist = squared_distances(zc.T, jnp.zeros((zc.shape[-1],), zc.dtype))
+    sqdist = squared_distances(zt, jnp.zeros((zt.shape[0],), zt.dtype))
     w = kernel_weights(sqdist, config.bandwidth, nb.mask)
-    fit = local_fit(zc, y, w, nb.mask, ridge=config.ridge, ivh_tol=config.ivh_tol)
+    fit = local_fit_columns(zt, y, w, nb.mask, ridge=config.ridge, ivh_tol=config.ivh_tol)
     count = jnp.sum(nb.mask).astype(jnp.int32)
     known = (count >= config.k_min) & jnp.isfinite(fit.value)
     if config.use_ivh:
