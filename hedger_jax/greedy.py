@@ -37,25 +37,51 @@ class GreedySets(NamedTuple):
 _NEG = -jnp.inf
 
 
+def _first_index(hit: jax.Array) -> jax.Array:
+    """Index of the first True of hit (m,) (m if none), by an integer minimum."""
+    m = hit.shape[-1]
+    return jnp.min(jnp.where(hit, jnp.arange(m, dtype=jnp.int32), m))
+
+
+def _argmin_nonneg(x: jax.Array) -> jax.Array:
+    """``jnp.argmin`` of x (m,) float32 >= 0 or +inf, without NaN: non-negative floats order
+    as their bits, so two integer minima (the smallest key, then its first index) replace
+    XLA's float argmin (a serial loop with NaN checks). Same index, ties to the first."""
+    key = jax.lax.bitcast_convert_type(x, jnp.int32)
+    return jnp.minimum(_first_index(key == jnp.min(key)), x.shape[-1] - 1)
+
+
+def _argmax_float(x: jax.Array) -> jax.Array:
+    """``jnp.argmax`` of x (m,) float32 without NaN (-inf allowed), ties to the first: the
+    floats mapped to integers of the same order (-0.0 first made +0.0, as argmax sees them
+    equal)."""
+    bits = jax.lax.bitcast_convert_type(x + 0.0, jnp.int32)
+    key = bits ^ ((bits >> 31) & 0x7FFFFFFF)
+    return jnp.minimum(_first_index(key == jnp.max(key)), x.shape[-1] - 1)
+
+
 def _bracket(xs: jax.Array, fs: jax.Array, filled: jax.Array):
     """Best filled sample and its nearest filled neighbours on each side (fallback: same side).
 
     xs, fs, filled (m,) -> three (x, f) pairs with x_l < x_b < x_r where possible.
     """
+    # Integer forms of argmax / argmin (same indices): the search runs this once per
+    # refinement, and XLA's float ones are serial loops with NaN checks (training 1.02x,
+    # continuous mountain car at 3e5 slots, paired, results identical).
     fs_m = jnp.where(filled, fs, _NEG)
-    b = jnp.argmax(fs_m)
+    b = _argmax_float(fs_m)
     xb = xs[b]
     dist = jnp.abs(xs - xb)
     others = filled & (jnp.arange(xs.shape[0]) != b) & (dist > 0)
     left = others & (xs < xb)
     right = others & (xs > xb)
     big = jnp.inf
-    i_l = jnp.argmin(jnp.where(left, dist, big))
-    i_r = jnp.argmin(jnp.where(right, dist, big))
+    i_l = _argmin_nonneg(jnp.where(left, dist, big))
+    i_r = _argmin_nonneg(jnp.where(right, dist, big))
     has_l, has_r = jnp.any(left), jnp.any(right)
     # Second-nearest on the available side, for a best sample at the boundary.
-    i_r2 = jnp.argmin(jnp.where(right & (jnp.arange(xs.shape[0]) != i_r), dist, big))
-    i_l2 = jnp.argmin(jnp.where(left & (jnp.arange(xs.shape[0]) != i_l), dist, big))
+    i_r2 = _argmin_nonneg(jnp.where(right & (jnp.arange(xs.shape[0]) != i_r), dist, big))
+    i_l2 = _argmin_nonneg(jnp.where(left & (jnp.arange(xs.shape[0]) != i_l), dist, big))
     i0 = jnp.where(has_l, i_l, jnp.where(has_r, b, i_l))
     i1 = jnp.where(has_l & has_r, b, jnp.where(has_l, i_l, i_r))
     i2 = jnp.where(has_r, jnp.where(has_l, i_r, i_r2), b)
@@ -137,13 +163,13 @@ def search_1d(f: Callable[[jax.Array], Tuple[jax.Array, ...]], low: float, high:
     # is never made (same result as evaluating it, as in the paper's loop). Under vmap the
     # loop runs until every search is done; the result is the same either way.
     vertex, worth = propose(xs, fs, filled)
-    b0 = jnp.argmax(jnp.where(filled, fs, _NEG))
+    b0 = _argmax_float(jnp.where(filled, fs, _NEG))
     init = (jnp.zeros((), jnp.int32), xs, fs, filled, jnp.float32(jnp.nan), vertex,
             worth & (iters > 0), jnp.any(k0), fs[b0],
             jax.tree_util.tree_map(lambda a: a[b0], aux0))
     n_evals, xs, fs, filled, _, _, _, any_known, _, best_aux = jax.lax.while_loop(
         lambda c: c[6], body, init)
-    best = jnp.argmax(jnp.where(filled, fs, _NEG))
+    best = _argmax_float(jnp.where(filled, fs, _NEG))
     out = (xs[best], fs[best], any_known) + ((n_evals,) if with_count else ())
     return out + ((aux0, best_aux) if with_aux else ())
 

@@ -152,13 +152,24 @@ def merge_appended(config: HedgerConfig, memory: Memory, z: jax.Array, cached: j
     # then in canonical order.
     p = jnp.arange(d2.shape[-1], dtype=jnp.int32)
 
-    def drop(_, d2):
-        far = jnp.max(d2, where=d2 < jnp.inf, initial=-1.0)
-        last = jnp.max(jnp.where(d2 == far, p, -1))
-        over = jnp.sum((d2 < jnp.inf).astype(jnp.int32)) > k
-        return jnp.where(over & (p == last), jnp.inf, d2)
+    # The distances are >= 0 or +inf, so as int32 bits they order as the floats (+inf,
+    # 0x7F800000, the largest): the farthest is an integer maximum, without the NaN checks
+    # of XLA's float one, and the count of entries left is carried, not recounted (training
+    # 1.011x, continuous mountain car at 3e5 slots, paired, results identical).
+    inf_bits = 0x7F800000
 
-    d2 = jax.lax.fori_loop(0, pos.shape[0], drop, d2)
+    def drop(_, c):
+        bits, count = c
+        far = jnp.max(jnp.where(bits < inf_bits, bits, -1))
+        last = jnp.max(jnp.where(bits == far, p, -1))
+        over = count > k
+        return (jnp.where(over & (p == last), inf_bits, bits),
+                count - over.astype(jnp.int32))
+
+    count = jnp.sum((d2 < jnp.inf).astype(jnp.int32))
+    bits, _ = jax.lax.fori_loop(0, pos.shape[0], drop,
+                                (jax.lax.bitcast_convert_type(d2, jnp.int32), count))
+    d2 = jax.lax.bitcast_convert_type(bits, jnp.float32)
     at = true_positions(d2 < jnp.inf, jnp.arange(k, dtype=jnp.int32))
     mask = at < d2.shape[-1]
     at = jnp.minimum(at, d2.shape[-1] - 1)

@@ -403,3 +403,25 @@ def test_explore_action_is_random_with_probability_epsilon_else_greedy(continuou
     if continuous:                          # the tolerance tells random from greedy apart
         ex, w = np.asarray(explored), np.asarray(want)
         assert np.min(np.abs(w[ex] - w[~ex][0])) > 1e-3
+
+
+# ------------------------------------------------------------------ integer argmin / argmax
+_SPECIAL = np.array([0.0, -0.0, 1.0, -1.0, np.inf, -np.inf, 0.5, 2.5e-39, 3.4e38, -3.4e38],
+                    np.float32)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_integer_argmax_and_argmin_equal_numpy_with_ties_zeros_and_infinities(seed):
+    """``_argmax_float`` / ``_argmin_nonneg`` (the search's bracket) return NumPy's index --
+    the first of equal values -- on values drawn from a few special ones (many ties, +-0,
+    +-inf, a subnormal) and on random normals, for every length up to the search's 19."""
+    from hedger_jax.greedy import _argmax_float, _argmin_nonneg
+    rng = np.random.default_rng(seed)
+    amax, amin = jax.jit(_argmax_float), jax.jit(_argmin_nonneg)
+    for n in range(1, 20):
+        for x in (rng.choice(_SPECIAL, n), rng.standard_normal(n).astype(np.float32),
+                  np.full(n, -np.inf, np.float32)):
+            x = x.astype(np.float32)
+            assert int(amax(jnp.asarray(x))) == int(np.argmax(x)), x
+            a = np.abs(x)
+            assert int(amin(jnp.asarray(a))) == int(np.argmin(a)), a
