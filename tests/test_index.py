@@ -1008,3 +1008,43 @@ def test_writes_with_the_loop_kernel_insertion_stay_exact(monkeypatch):
     vals = rng.normal(size=300).astype(np.float32)
     mb, mg = _write_all(cb, pts, vals), _write_all(cg, pts, vals)
     _assert_same(cb, mb, cg, mg, np.concatenate([_uniform(rng, 30), pts[-10:]]))
+
+
+@pytest.mark.parametrize("policy, full", [("error", False), ("error", True),
+                                          ("overwrite_oldest", False)])
+def test_one_query_at_a_time_matches_the_batch_and_brute(policy, full):
+    """A query searched alone reads its first trip by contiguous windows
+    (``index._first_trip_by_segments``; a vmapped batch counts columns instead): the same
+    neighbour sets, bit for bit, as the batch, and brute force's. Several levels, a dense
+    cluster and points in the grid's last cells, queried there and at uniform spots; either
+    writes pending beyond the recent list (a recent part and the part after it), or a full,
+    merged memory, whose last cells' segments end at the arrays' last column (windows that
+    would run past it start earlier). (With ``overwrite_oldest`` every trip counts columns:
+    the stale-slot test needs each candidate's slot.)"""
+    rng = np.random.default_rng(11)
+    n_late = 0 if full else 40
+    kw = dict(action_low=(-0.2,), action_high=(0.2,), capacity=2400 + n_late, bandwidth=0.05,
+              max_neighbours=8, index_levels=3, index_recent=16, full_policy=policy)
+    cb = HedgerConfig(2, 1, neighbour_index="brute", **kw)
+    cg = HedgerConfig(2, 1, neighbour_index="grid", **kw)
+    assert len(gi.geometry(cg).levels) == 3
+    corner = rng.uniform([0.98, 0.98, 0.19], [1.0, 1.0, 0.2], (60, 3))
+    pts = np.concatenate([rng.uniform([0, 0, -0.2], [1, 1, 0.2], (2040, 3)),
+                          rng.normal([0.5, 0.5, 0.0], 0.01, (300, 3)), corner]
+                         ).astype(np.float32)
+    late = rng.uniform([0, 0, -0.2], [1, 1, 0.2], (40, 3)).astype(np.float32)
+    mb, mg = _memory(cb, pts), _memory(cg, pts)
+    if not full:
+        writes = jnp.ones(n_late, bool)
+        vals = jnp.zeros(n_late, jnp.float32)
+        mb = _write_fn(cb)(mb, jnp.asarray(late), vals, writes)
+        mg = _write_fn(cg)(mg, jnp.asarray(late), vals, writes)
+    assert int(mg.index.n_new) == n_late             # 16 in the recent list, 24 after it
+    q = np.concatenate([corner[:30] + 0.001, pts[2040:2070], late[:20],
+                        rng.uniform([0, 0, -0.2], [1, 1, 0.2], (40, 3))]).astype(np.float32)
+    alone = jax.device_get(jax.jit(lambda zs: jax.lax.map(
+        lambda z: select_neighbours(cg, mg, z), zs))(jnp.asarray(q)))
+    batch = jax.device_get(_select_fn(cg)(mg, jnp.asarray(q)))
+    for a, b in zip(alone, batch):
+        np.testing.assert_array_equal(a, b)
+    _assert_same(cb, mb, cg, mg, q)
