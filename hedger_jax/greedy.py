@@ -20,7 +20,7 @@ import jax.numpy as jnp
 
 from hedger_jax import rng
 from hedger_jax.config import HedgerConfig
-from hedger_jax.memory import Memory
+from hedger_jax.memory import Memory, map_queries
 from hedger_jax.predict import Prediction, predict_detailed
 
 
@@ -194,7 +194,7 @@ def _packed(p: Prediction) -> jax.Array:
 def _discrete_values(config: HedgerConfig, memory: Memory, state: jax.Array):
     """-> (actions (n, A), values (n,), known (n,), K of each (n, k) as ``_packed``)."""
     actions = jnp.asarray(config.discrete_actions, jnp.float32)          # (n, A)
-    p = jax.vmap(lambda a: predict_detailed(config, memory, state, a))(actions)
+    p = map_queries(config, lambda a: predict_detailed(config, memory, state, a), actions)
     return actions, p.value, p.known, _packed(p)
 
 

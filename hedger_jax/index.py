@@ -1017,6 +1017,16 @@ def _scan(config, geo: Geometry, index: GridIndex, head, z, lv, tab_start, tab_l
     return best_idx, best_d2
 
 
+def searches_alone(config) -> bool:
+    """Whether a query searched on its own reads its first scan trip by contiguous windows
+    (``_first_trip``): a grid of several levels (not ``overwrite_oldest``, whose stale-slot
+    test needs every candidate's slot). Then a small batch of queries over one memory (a
+    greedy search's candidate actions, a replay step's queries) is searched one query after
+    another (``memory.map_queries``) rather than vmapped."""
+    return (config.index_kind == "grid" and len(geometry(config).levels) > 1
+            and config.full_policy != "overwrite_oldest" and config.capacity >= _WINDOW)
+
+
 def _candidate_cells(lv, L: int, n: int, col, in_tab):
     """(row, column) of candidates in the (L + 1, ...) index arrays: level lv's table or
     (row L) the recent list. Straight 2-D gathers from those arrays (``index.order[lv]`` with

@@ -8,7 +8,8 @@ import jax.numpy as jnp
 
 from hedger_jax.config import HedgerConfig
 from hedger_jax.greedy import greedy_candidates, greedy_value_from
-from hedger_jax.memory import FLAG_NONFINITE, Memory, add_scaled, scale_inputs, select_neighbours
+from hedger_jax.memory import (FLAG_NONFINITE, Memory, add_scaled, map_queries, scale_inputs,
+                               select_neighbours)
 from hedger_jax.predict import predict_from_neighbours, predict_scaled
 from hedger_jax.replay_cache import cached_neighbours
 
@@ -85,8 +86,8 @@ def train_step(config: HedgerConfig, memory: Memory, transition: Transition, cac
     if cached is None:
         batch = jax.vmap(lambda zz: predict_scaled(config, memory, zz))(zs)
     else:
-        nb = cached_neighbours(config, memory, zs, cached,
-                               jax.vmap(lambda zz: select_neighbours(config, memory, zz)))
+        nb = cached_neighbours(config, memory, zs, cached, lambda q: map_queries(
+            config, lambda zz: select_neighbours(config, memory, zz), q))
         batch = jax.vmap(lambda zz, n: predict_from_neighbours(config, memory, zz, n))(zs, nb)
     p = jax.tree_util.tree_map(lambda x: x[0], batch)
     q_next, _ = greedy_value_from(config, memory, t.next_obs, batch.value[1:], batch.known[1:])
