@@ -46,12 +46,10 @@ from envs.mountain_car import MountainCar  # noqa: E402
 from hedger_jax.agent import (RunConfig, make_train, rollout, train_prefix,  # noqa: E402
                               training_act)
 from hedger_jax.config import HedgerConfig  # noqa: E402
-from hedger_jax.memory import (init_memory, largest_array_bytes, refresh_index,  # noqa: E402
-                               select_neighbours)
+from hedger_jax.memory import init_memory, refresh_index, select_neighbours  # noqa: E402
 from hedger_jax.index import geometry, merge_threshold  # noqa: E402
-from hedger_jax.predict import predict_scaled  # noqa: E402
-from hedger_jax.runtime import (jit_serial_codegen, loop_kernels_enabled,  # noqa: E402
-                                serial_codegen_wanted)
+from hedger_jax.prediction import predict_scaled  # noqa: E402
+from hedger_jax import cpu as hj_cpu  # noqa: E402
 from numpy_baseline import NumpyHedger, time_episodes  # noqa: E402
 
 DISCRETE = ((-1.0,), (0.0,), (1.0,))
@@ -333,21 +331,17 @@ class InterleavedBaseline:
         self.points, self.wall, self.episodes = self.points + p, self.wall + t, self.episodes + 1
 
 
-def time_training(cfg, continuous, mem, n_episodes, n_seeds=None, serial=None, min_cpu=2.0,
+def time_training(cfg, continuous, mem, n_episodes, n_seeds=None, min_cpu=2.0,
                   max_reps=40, seed_mode="vmap", baseline=None):
-    """(points per CPU-second, first-call seconds, points per wall-second). ``serial``:
-    compile inside ``hedger_jax.runtime.serial_codegen`` (None: the library's auto policy,
-    on the vmapped memory's largest array: n_seeds times one seed's). ``seed_mode``: with
-    ``n_seeds``, "vmap" (the seeds batched) or "map" (``lax.map``: one after another in the
-    same program, as ``shard_seeds`` runs a CPU device's seeds; the auto policy then looks at
-    one seed's memory).
+    """(points per CPU-second, first-call seconds, points per wall-second). ``seed_mode``:
+    with ``n_seeds``, "vmap" (the seeds batched) or "map" (``lax.map``: one after another in
+    the same program, as ``shard_seeds`` runs a CPU device's seeds).
 
     Each timed call runs ``n_episodes`` from a fresh copy of ``mem`` (copied outside the
-    timing) with its own key, repeated until ``min_cpu`` CPU-seconds (or ``max_reps`` calls):
-    one call of a few episodes lasts ~20 ms at 20,000 slots, and single-call rates varied by
-    up to 1.4x between identical runs. ``baseline`` (an ``InterleavedBaseline``): one of its
-    episodes after each timed call, until both have their minimum (then the calls go on past
-    ``max_reps`` if the baseline needs it).
+    timing) with its own key, repeated until ``min_cpu`` CPU-seconds (or ``max_reps`` calls).
+    ``baseline`` (an ``InterleavedBaseline``): one of its episodes after each timed call,
+    until both have their minimum (then the calls go on past ``max_reps`` if the baseline
+    needs it), so both are timed over the same minutes.
     """
     fn = episodes_fn(cfg, continuous, n_episodes)
     if n_seeds is not None and seed_mode == "map":
@@ -355,10 +349,7 @@ def time_training(cfg, continuous, mem, n_episodes, n_seeds=None, serial=None, m
         fn = lambda m, k: jax.lax.map(lambda a: one(*a), (m, k))  # noqa: E731
     elif n_seeds is not None:
         fn = jax.vmap(fn)
-    if serial is None:
-        batch = n_seeds if n_seeds is not None and seed_mode == "vmap" else 1
-        serial = serial_codegen_wanted(largest_array_bytes(cfg) * batch)
-    f = jit_serial_codegen(fn, enabled=serial, donate_argnums=(0,))
+    f = hj_cpu.jit(fn, donate_argnums=(0,))
     fresh = lambda: jax.block_until_ready(jax.tree_util.tree_map(jnp.copy, mem))  # noqa: E731
 
     def keys(rep):
@@ -395,22 +386,22 @@ def bench_train(settings, rng, results, quick):
             baseline_agent(mc_config(cap, "brute", continuous), z.astype(np.float64),
                            v.astype(np.float64)),
             continuous, min_cpu=0.5 if quick else 2.0, min_episodes=1 if quick else 2)
-        for kind, serial in (("brute", False), ("grid", False), ("grid_serial", True)):
+        for kind in ("brute", "grid"):
             if kind == "brute" and cap > 100_000:
                 continue
-            cfg = mc_config(cap, kind.split("_")[0], continuous)
+            cfg = mc_config(cap, kind, continuous)
             n_eps = episodes_per_call(cfg, 2 if quick else 4)
             row[f"{kind}_episodes_per_call"] = n_eps
             pps, t_first, wall = time_training(
-                cfg, continuous, filled_memory(cfg, z, v), n_eps, serial=serial,
-                min_cpu=0.5 if quick else 2.0, baseline=base if kind == "grid_serial" else None)
+                cfg, continuous, filled_memory(cfg, z, v), n_eps,
+                min_cpu=0.5 if quick else 2.0, baseline=base if kind == "grid" else None)
             row[f"{kind}_points_per_s"] = pps
             row[f"{kind}_points_per_wall_s"] = wall
             row[f"{kind}_first_call_s"] = t_first
         row["baseline_points_per_s"] = base.points / base.cpu
         row["baseline_points_per_wall_s"] = base.points / base.wall
         row["baseline_episodes"] = base.episodes
-        for kind in ("brute", "grid", "grid_serial"):
+        for kind in ("brute", "grid"):
             if f"{kind}_points_per_s" in row:
                 row[f"{kind}_ratio"] = row[f"{kind}_points_per_s"] / row["baseline_points_per_s"]
         rows.append(row)
@@ -481,7 +472,7 @@ def markdown(results) -> str:
            f"{m['platform']}, jax {m['jax']} "
            f"({m['backend']}), load average at start {m['load_start']}, at end "
            f"{m.get('load_end', '-')}. Mode: {'quick' if results['quick'] else 'full'}. "
-           f"Loop kernels (hedger_jax.runtime): {m.get('loop_kernels', 'not recorded')}; "
+           f"`hedger_jax.cpu.configure()` called: {m.get('configured', 'not recorded')}; "
            f"XLA_FLAGS: `{m.get('xla_flags', 'not recorded')}`.", "",
            "Baseline = float64 NumPy + scipy cKDTree HEDGER in the same process "
            "(benchmarks/numpy_baseline.py, single-threaded). Ratio = ours / baseline. "
@@ -530,30 +521,23 @@ def markdown(results) -> str:
     if "train" in results:
         out += ["## (b) Training points/s, mountain car (epsilon-greedy episodes + reverse "
                 "replay, one seed)", "",
-                "Columns `serial`: the grid index compiled inside "
-                "`hedger_jax.runtime.serial_codegen` (no intra-op thread splitting; what "
-                "`Hedger.learn` does once the memory's largest array, the grid index's tables "
-                "included, reaches 512 KiB). Each timed call runs episodes from the same "
-                "stored points (the grid's: two merge periods of its recent list per call, "
-                "`episodes_per_call`, so the index merges are paid as in a long run). The "
-                "baseline's episodes alternate with the serial column's calls (one after "
-                "each), so both are timed over the same minutes.", "",
+                "Each timed call runs episodes from the same stored points (the grid's: two "
+                "merge periods of its recent list per call, `episodes_per_call`, so the index "
+                "merges are paid as in a long run). The baseline's episodes alternate with the "
+                "grid column's calls (one after each), so both are timed over the same "
+                "minutes.", "",
                 "| actions | capacity | stored points | brute /s | grid /s | grid /s wall | "
-                "grid serial /s | grid serial /s wall | baseline /s | brute ratio | grid ratio | "
-                "grid serial ratio |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+                "baseline /s | brute ratio | grid ratio |", "|---|---|---|---|---|---|---|---|---|"]
         for r in results["train"]:
             out.append(f"| {r['actions']} | {r['capacity']:,} | {r['prefill']:,} | "
                        f"{fmt(r.get('brute_points_per_s'))} | {fmt(r.get('grid_points_per_s'))} | "
                        f"{fmt(r.get('grid_points_per_wall_s'))} | "
-                       f"{fmt(r.get('grid_serial_points_per_s'))} | "
-                       f"{fmt(r.get('grid_serial_points_per_wall_s'))} | "
                        f"{fmt(r['baseline_points_per_s'])} | {fmt(r.get('brute_ratio'), 1)} | "
-                       f"{fmt(r.get('grid_ratio'), 1)} | {fmt(r.get('grid_serial_ratio'), 1)} |")
+                       f"{fmt(r.get('grid_ratio'), 1)} |")
         out.append("")
     if "seeds" in results:
         out += ["## (c) Total training points/s vs vmapped seeds (discrete)", "",
-                "Compiled serially where the vmapped memories' largest array reaches 512 KiB "
-                "(from 2 seeds of the grid at 20,000 slots). Mode `map`: the same seeds one "
+                "Mode `map`: the same seeds one "
                 "after another in one program (`lax.map`, as `hedger_jax.sharding.shard_seeds` "
                 "runs a CPU device's seeds; across devices see `benchmarks/seeds_sharded.py`); "
                 "`vs 1 seed` is against the first row of the index.", "",
@@ -587,8 +571,14 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="small sizes (about a minute)")
     ap.add_argument("--out", default=os.path.join(ROOT, "benchmarks", "results"))
-    ap.add_argument("--sections", default="predict,select,train,seeds,compile")
+    ap.add_argument("--sections", default="predict,select,train,seeds,compile",
+                    help="comma-separated sections to run: predict, select, train, seeds, "
+                         "compile (default: all)")
+    ap.add_argument("--default", action="store_true",
+                    help="measure without hedger_jax.cpu.configure() (what a program gets "
+                         "that only uses hedger_jax.jit); default: configure first")
     args = ap.parse_args(argv)
+    configured = False if args.default else hj_cpu.configure()
     sections = args.sections.split(",")
     rng = np.random.default_rng(0)
     results = {"date": datetime.datetime.now().isoformat(timespec="seconds"),
@@ -598,7 +588,7 @@ def main(argv=None):
                            "jax": jax.__version__, "backend": jax.default_backend(),
                            "load_start": os.getloadavg(),
                            "xla_flags": os.environ.get("XLA_FLAGS", ""),
-                           "loop_kernels": loop_kernels_enabled()},
+                           "configured": configured},
                "maxrss_mb": {"start": maxrss_mb()}}
     if args.quick:
         caps, batch = [1_000, 10_000, 100_000], 1024

@@ -1,6 +1,6 @@
 """Seeds over devices: total training points/s of ``hedger_jax.sharding.shard_seeds``.
 
-Run as a script (it sets ``XLA_FLAGS`` to force ``--devices`` host devices before JAX
+Run as a script (``hedger_jax.cpu.configure`` forces ``--devices`` host devices before JAX
 starts, so it needs a process of its own)::
 
     python benchmarks/seeds_sharded.py [--devices 2] [--seeds 8] [--capacity 20000] [--out DIR]
@@ -31,19 +31,17 @@ def main(argv=None):
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--out", default="benchmark_results")
     args = ap.parse_args(argv)
-    if "jax" in sys.modules:
-        raise SystemExit("run seeds_sharded.py as a script: XLA_FLAGS must be set before JAX")
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") +
-                               f" --xla_force_host_platform_device_count={args.devices}").strip()
     sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
     sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    from hedger_jax import cpu
+
+    if not cpu.configure(host_devices=args.devices):
+        raise SystemExit("run seeds_sharded.py as a script: XLA_FLAGS must be set before JAX")
     import jax
-    import jax.numpy as jnp
     import numpy as np
     from jax.sharding import NamedSharding, PartitionSpec
 
     import run as B
-    from hedger_jax.runtime import jit_serial_codegen, loop_kernels_enabled
     from hedger_jax.sharding import seed_mesh, shard_seeds
 
     S = args.seeds
@@ -61,9 +59,9 @@ def main(argv=None):
     one_dev = jax.devices()[0]
     spmd = jax.jit(jax.vmap(train), in_shardings=sharding, out_shardings=sharding)
     variants = {
-        "one seed": (jit_serial_codegen(train), None),
-        "vmap, one device": (jit_serial_codegen(jax.vmap(train)), one_dev),
-        "lax.map, one device": (jit_serial_codegen(lambda k: jax.lax.map(train, k)), one_dev),
+        "one seed": (cpu.jit(train), None),
+        "vmap, one device": (cpu.jit(jax.vmap(train)), one_dev),
+        "lax.map, one device": (cpu.jit(lambda k: jax.lax.map(train, k)), one_dev),
         "shard_seeds map": (lambda k: shard_seeds(train, k, per_device="map"), None),
         "shard_seeds vmap": (lambda k: shard_seeds(train, k, per_device="vmap"), None),
         "SPMD-sharded vmap (earlier shard_seeds)": (lambda k: spmd(jax.device_put(k, sharding)),
@@ -96,7 +94,7 @@ def main(argv=None):
     meta = {"machine": f"{os.cpu_count()} CPU cores ({B.cpu_model()}), {platform.platform()}",
             "jax": jax.__version__, "devices": len(jax.devices()), "seeds": S,
             "capacity": args.capacity, "stored": args.capacity // 2,
-            "loop_kernels": loop_kernels_enabled(), "XLA_FLAGS": os.environ["XLA_FLAGS"],
+            "XLA_FLAGS": os.environ["XLA_FLAGS"],
             "date": time.strftime("%Y-%m-%dT%H:%M:%S")}
     lines = [f"# Seeds over devices ({meta['date']})", "",
              f"Machine: {meta['machine']}, jax {meta['jax']}, {meta['devices']} forced host "

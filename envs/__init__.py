@@ -2,14 +2,9 @@
 
 The functional API (``reset``/``step`` pure functions over params/state pytrees) is described
 in ``envs.base``. Gymnasium ids are registered by importing ``envs.gym_adapter``; the Brax
-adapter lives in ``envs.brax_adapter`` (the only module that imports brax).
-
-Importing ``envs`` applies hedger-jax's XLA CPU setting (``hedger_jax.runtime``) first.
+adapter lives in ``envs.brax_adapter`` (the only module that imports brax). Nothing here
+imports ``hedger_jax``.
 """
-from hedger_jax.runtime import apply_safe_cpu_flags as _apply_safe_cpu_flags
-
-_apply_safe_cpu_flags()
-
 from envs.spaces import ActionSpace
 from envs.base import FunctionalEnv
 

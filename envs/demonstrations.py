@@ -267,6 +267,7 @@ def save_demonstrations(path: PathLike, demos: Demonstrations,
             np.savez_compressed(f, metadata=np.array(text), **arrays)
             f.flush()
             os.fsync(f.fileno())
+        os.chmod(tmp, _default_mode())      # mkstemp's 0600 -> what open() would give
         os.replace(tmp, path)
     except BaseException:
         try:
@@ -275,6 +276,17 @@ def save_demonstrations(path: PathLike, demos: Demonstrations,
             pass
         raise
     return path
+
+
+def _default_mode() -> int:
+    """0o666 less the umask (read from /proc where Linux reports it, else by os.umask)."""
+    try:
+        with open("/proc/self/status") as f:
+            umask = next(int(line.split()[1], 8) for line in f if line.startswith("Umask:"))
+    except (OSError, ValueError, IndexError, StopIteration):
+        umask = os.umask(0o022)
+        os.umask(umask)
+    return 0o666 & ~umask
 
 
 def read_metadata(path: PathLike) -> Dict[str, Any]:

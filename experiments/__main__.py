@@ -18,6 +18,7 @@ import time
 from typing import Dict, List, Optional
 
 
+from hedger_jax import cpu
 from experiments.figures import FIGURES, build_figure
 from experiments.plotting import plot_figure
 from experiments.runner import atomic_write_bytes, atomic_write_json, run_variant, versions
@@ -55,27 +56,6 @@ def select_variants(figure, only: Optional[List[str]] = None,
     if axes == {"episodes"} and x_label == "training points":
         x_label = "phase-two training runs"      # e.g. an ablation in the Figure-2 setting
     return dataclasses.replace(figure, variants=variants, optional=(), x_label=x_label)
-
-
-def split_cpu_devices(n: int) -> int:
-    """Ask JAX for ``n`` host CPU devices (``--xla_force_host_platform_device_count``), so
-    that seed batches run side by side on the cores; only where it can still take effect --
-    the backend not started yet, no accelerator possible, ``XLA_FLAGS`` not already naming a
-    device count. Returns the number of devices JAX will have (it starts the backend)."""
-    import jax
-
-    from hedger_jax.runtime import _accelerator_possible
-
-    try:
-        from jax._src import xla_bridge
-        started = xla_bridge.backends_are_initialized()
-    except (ImportError, AttributeError):
-        started = True
-    flags = os.environ.get("XLA_FLAGS", "")
-    if n > 1 and not started and not _accelerator_possible() and \
-            "xla_force_host_platform_device_count" not in flags:
-        os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={n}".strip()
-    return len(jax.devices())
 
 
 def run_figure(name: str, mode: str, seeds: List[int], out: str, seed_batch: int,
@@ -142,7 +122,13 @@ def main(argv=None) -> int:
     if args.eval_episodes is not None and args.eval_episodes < 1:
         parser.error("--eval-episodes must be >= 1")
     if args.devices == "cores":
-        devices = split_cpu_devices(min(os.cpu_count() or 1, args.seed_batch, args.seeds))
+        n = min(os.cpu_count() or 1, args.seed_batch, args.seeds)
+        if n > 1 and not cpu.accelerator_installed():
+            cpu.configure(host_devices=n)
+        else:
+            cpu.configure()
+        import jax
+        devices = len(jax.devices())
     else:
         try:
             devices = int(args.devices)
@@ -150,6 +136,7 @@ def main(argv=None) -> int:
             devices = 0
         if devices < 1:
             parser.error("--devices must be a number >= 1 or 'cores'")
+        cpu.configure()
     os.makedirs(args.out, exist_ok=True)
     names = list(FIGURES) if args.figure == "all" else [args.figure]
     seeds = list(range(args.seeds))

@@ -18,7 +18,6 @@ import functools
 import hashlib
 import json
 import os
-import tempfile
 from typing import Any, Callable, Dict, List, Optional
 
 import jax
@@ -28,27 +27,16 @@ import numpy as np
 import hedger_jax
 from hedger_jax.agent import BlockResult, make_train, transitions_from_demonstrations
 from hedger_jax.config import HedgerConfig
-from hedger_jax.memory import largest_array_bytes, memory_check
-from hedger_jax.runtime import jit_serial_codegen, serial_codegen_wanted
+from hedger_jax.cpu import jit as _jit
+from hedger_jax.files import atomic_write
+from hedger_jax.memory import memory_check
 
 from experiments.figures import Variant
 
 
 def atomic_write_bytes(path: str, data: bytes) -> None:
-    """Write ``data`` to ``path`` atomically (temp file in the same directory + rename)."""
-    directory = os.path.dirname(os.path.abspath(path))
-    os.makedirs(directory, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=directory, prefix=".tmp-", suffix=os.path.basename(path))
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    """Write ``data`` to ``path`` atomically, with the permissions ``open`` would give."""
+    atomic_write(path, lambda f: f.write(data))
 
 
 def atomic_write_json(path: str, obj: Any) -> None:
@@ -119,10 +107,6 @@ def compiled_variant(variant: Variant, seed_mode: str = "vmap", n_devices: int =
     ``n_devices`` > 1 the batch's seeds are split over the first ``n_devices`` devices
     (``hedger_jax.sharding.per_device``): batches must then be a multiple of it long."""
     _, config, train, info = build_variant(variant)
-    # Off unless HEDGER_JAX_SERIAL_CODEGEN=1: a block also evaluates hundreds of episodes at
-    # once, which gains from XLA's op splitting (Figure 2 quick: 1:42 default, 2:22 serial
-    # on 2 cores, same per-CPU time); long training-bound runs gain from "1".
-    serial = serial_codegen_wanted(largest_array_bytes(config), auto=False)
     if seed_mode not in ("map", "vmap"):
         raise ValueError(f"seed_mode: expected 'vmap' or 'map', got {seed_mode!r}")
     if n_devices > 1:
@@ -140,8 +124,8 @@ def compiled_variant(variant: Variant, seed_mode: str = "vmap", n_devices: int =
             batched_block = functools.partial(jax.lax.map, train.run_block)
         else:
             batched_init, batched_block = jax.vmap(train.init), jax.vmap(train.run_block)
-    init = jit_serial_codegen(batched_init, enabled=serial, **shard)
-    run_block = jit_serial_codegen(batched_block, enabled=serial, donate_argnums=0, **shard)
+    init = _jit(batched_init, **shard)
+    run_block = _jit(batched_block, donate_argnums=0, **shard)
     return init, run_block, info
 
 

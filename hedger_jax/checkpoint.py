@@ -43,13 +43,13 @@ import io
 import json
 import os
 import platform
-import tempfile
 import zipfile
 from typing import Any, Dict, NamedTuple, Optional, Union
 
 import numpy as np
 
 from hedger_jax.config import HedgerConfig
+from hedger_jax.files import atomic_write
 from hedger_jax.memory import Memory
 
 __all__ = ["CheckpointError", "Checkpoint", "save_checkpoint", "load_checkpoint",
@@ -137,19 +137,6 @@ def _write_bytes(f, data: bytes) -> None:
         f.write(view[start:start + _CHUNK])
 
 
-def _fsync_dir(folder: str) -> None:
-    try:
-        fd = os.open(folder, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
-
-
 def save_checkpoint(path: PathLike, config: HedgerConfig, memory: Memory, run_config: Any = None,
                     *, seed: Optional[int] = None, env_id: Optional[str] = None,
                     extra_arrays: Optional[Dict[str, Any]] = None,
@@ -202,24 +189,7 @@ def save_checkpoint(path: PathLike, config: HedgerConfig, memory: Memory, run_co
     np.savez(buf, header=np.array(text), **arrays)
     data = buf.getvalue()
 
-    path = os.fspath(path)
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".ckpt-", suffix=".tmp", dir=folder)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            _write_bytes(f, data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
-    _fsync_dir(folder)
-    return path
+    return atomic_write(path, lambda f: _write_bytes(f, data), prefix=".ckpt-")
 
 
 def _read(path: str):

@@ -21,7 +21,7 @@ import jax.numpy as jnp
 from hedger_jax import rng
 from hedger_jax.config import HedgerConfig
 from hedger_jax.memory import Memory, map_queries
-from hedger_jax.predict import Prediction, predict_detailed
+from hedger_jax.prediction import Prediction, predict_detailed
 
 
 class GreedySets(NamedTuple):

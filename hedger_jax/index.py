@@ -76,9 +76,8 @@ from jax.custom_batching import custom_vmap
 from hedger_jax.canonical import canonical_order
 from hedger_jax.config import GRID_MAX_CAPACITY
 from hedger_jax.fusion import computed_once
-from hedger_jax.kselect import smallest_k, true_positions
+from hedger_jax.kselect import cpu_kernels, smallest_k, true_positions
 from hedger_jax.loops import batch_cond
-from hedger_jax.runtime import loop_kernels_enabled
 
 #: Largest number of grid cells per level (size of a ``starts`` table); see ``max_cells``.
 _MAX_CELLS = 1 << 22
@@ -695,7 +694,7 @@ def _insert_recent(L: int, rkeys, order, spoints, key, slot, z, count, ins):
     right, when ``ins`` (count: live entries before the insertion, < R when ``ins``).
     Returns (rkeys, order, spoints)."""
     args = (rkeys, order, spoints, key, slot, z, count, ins)
-    if loop_kernels_enabled():
+    if cpu_kernels():
         return _insert_recent_fn(L)(*args)
     return _insert_by_shift(L, *args)
 

@@ -31,7 +31,6 @@ import jax
 import jax.numpy as jnp
 from jax.custom_batching import custom_vmap
 
-from hedger_jax.runtime import loop_kernels_enabled
 
 #: From this many vmapped members on, ``smallest_k`` runs them one after another
 #: (``lax.map``) instead of as one batched search (see ``_smallest_k_fn``).
@@ -43,6 +42,13 @@ _VALUE_STEPS = 16
 
 #: Bits of +inf in float32: the largest key of a non-negative value (NaN counts as +inf).
 _INF_BITS = 0x7F800000
+
+
+def cpu_kernels() -> bool:
+    """Whether the program is for the CPU, where the loops' sort-free forms pay (the
+    backend platform, not the process's flags, decides: a traced function depends only on
+    its arguments and the platform)."""
+    return jax.default_backend() == "cpu"
 
 
 def _before(n: int) -> jax.Array:
@@ -170,7 +176,7 @@ def _smallest_k_fn(k: int):
         # sort-free form beat top_k there as well (batched selection at 3e5 / 1e6 slots
         # 1.27x / 1.17x, predictions 1.05-1.20x discrete, 1.00x continuous; paired,
         # bit-identical, 2-core CPU).
-        if not loop_kernels_enabled():
+        if not cpu_kernels():
             return _smallest_k_by_top_k(values, payload, k)
         one = functools.partial(_smallest_k_by_count, k=k)
         n = values.shape[-1]

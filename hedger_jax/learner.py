@@ -43,10 +43,9 @@ from hedger_jax.agent import (Evaluation, RunConfig, evaluate, explore_action, r
 from hedger_jax.checkpoint import load_checkpoint, save_checkpoint
 from hedger_jax.config import HedgerConfig
 from hedger_jax.greedy import greedy_action
-from hedger_jax.memory import (Memory, init_memory, largest_array_bytes, memory_check,
-                               refresh_index)
-from hedger_jax.predict import predict as _predict_q
-from hedger_jax.runtime import jit_serial_codegen, serial_codegen_wanted
+from hedger_jax.cpu import jit as _jit
+from hedger_jax.memory import Memory, init_memory, memory_check, refresh_index
+from hedger_jax.prediction import predict as _predict_q
 from hedger_jax.validation import (InvalidInputError, check_actions, check_key,
                                    check_observations, check_transitions)
 
@@ -91,14 +90,7 @@ def make_env(env_id: str, **env_kwargs: Any):
 # ------------------------------------------------------------------------------------------
 # Jitted pieces (module level: compiled once per static settings, shared by all learners)
 # ------------------------------------------------------------------------------------------
-def _large_memory(static: Dict[str, Any]) -> bool:
-    """Compile the training loops of large memories without XLA's per-op thread splitting."""
-    config = static["config"]
-    return serial_codegen_wanted(largest_array_bytes(config))
-
-
-@functools.partial(jit_serial_codegen, enabled=_large_memory,
-                   static_argnames=("env", "config", "run", "max_steps", "max_episodes"),
+@functools.partial(_jit, static_argnames=("env", "config", "run", "max_steps", "max_episodes"),
                    donate_argnames=("memory",))
 def _learn_chunk(memory: Memory, key: jax.Array, env_params: Any, budget: jax.Array, *, env,
                  config: HedgerConfig, run: RunConfig, max_steps: int, max_episodes: int):
@@ -130,15 +122,14 @@ def _learn_chunk(memory: Memory, key: jax.Array, env_params: Any, budget: jax.Ar
     return jax.lax.while_loop(cond, body, init)
 
 
-@functools.partial(jit_serial_codegen, enabled=_large_memory, static_argnames=("config",),
+@functools.partial(_jit, static_argnames=("config",),
                    donate_argnames=("memory",))
 def _train_prefix_jit(memory: Memory, episode: Any, length: jax.Array, *, config: HedgerConfig):
     """Reverse replay of one recorded episode (leading axis T) over its first ``length`` steps."""
     return train_prefix(config, memory, episode, length)
 
 
-@functools.partial(jit_serial_codegen, enabled=_large_memory,
-                   static_argnames=("env", "config", "act", "init", "max_steps", "has_start"),
+@functools.partial(_jit, static_argnames=("env", "config", "act", "init", "max_steps", "has_start"),
                    donate_argnames=("memory",))
 def _policy_episode(memory: Memory, key: jax.Array, env_params: Any, start: Any, *, env,
                     config: HedgerConfig, act, init, max_steps: int, has_start: bool):
@@ -153,7 +144,7 @@ def _policy_episode(memory: Memory, key: jax.Array, env_params: Any, start: Any,
     return train_prefix(config, memory, ep, length), length
 
 
-@functools.partial(jax.jit, static_argnames=("config",))
+@functools.partial(_jit, static_argnames=("config",))
 def _greedy_batch(memory: Memory, obs: jax.Array, key: jax.Array, *, config: HedgerConfig):
     """Greedy actions for obs (B, S) with the *same* key for every row (so an observation's
     action does not depend on its batch position) -> (actions (B, A), values (B,), known (B,),
@@ -162,7 +153,7 @@ def _greedy_batch(memory: Memory, obs: jax.Array, key: jax.Array, *, config: Hed
     return acts, vals, known, _config_index(config, acts)
 
 
-@functools.partial(jax.jit, static_argnames=("config", "run"))
+@functools.partial(_jit, static_argnames=("config", "run"))
 def _explore_batch(memory: Memory, obs: jax.Array, key: jax.Array, *, config: HedgerConfig,
                    run: RunConfig):
     """Epsilon-greedy actions for obs (B, S), one key per row -> (actions (B, A), index (B,))."""
@@ -171,13 +162,13 @@ def _explore_batch(memory: Memory, obs: jax.Array, key: jax.Array, *, config: He
     return acts, _config_index(config, acts)
 
 
-@functools.partial(jax.jit, static_argnames=("config",))
+@functools.partial(_jit, static_argnames=("config",))
 def _q_batch(memory: Memory, obs: jax.Array, actions: jax.Array, *, config: HedgerConfig):
     """Q(s, a) for obs (B, S), actions (B, A) -> (values (B,), known (B,), n_neighbours (B,))."""
     return jax.vmap(lambda o, a: _predict_q(config, memory, o, a))(obs, actions)
 
 
-@functools.partial(jax.jit, static_argnames=("env", "config", "n_episodes", "max_steps"))
+@functools.partial(_jit, static_argnames=("env", "config", "n_episodes", "max_steps"))
 def _evaluate_jit(memory, key, env_params, *, env, config, n_episodes, max_steps):
     return evaluate(env, env_params, config, memory, key, n_episodes, max_steps)
 

@@ -22,9 +22,8 @@ from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
-from jax._src.interpreters import partial_eval as pe  # convert_constvars_jaxpr (stable)
 from jax.custom_batching import custom_vmap
-from jax.extend.core import ClosedJaxpr, jaxpr_as_fun
+from jax.extend.core import ClosedJaxpr, Jaxpr, jaxpr_as_fun
 
 
 def masked_fori_loop(n: jax.Array, body: Callable[[jax.Array, Any, jax.Array], Any],
@@ -36,6 +35,17 @@ def masked_fori_loop(n: jax.Array, body: Callable[[jax.Array, Any, jax.Array], A
     """
     fn, consts = _hoist_closure(body, carry)
     return _loop(fn)(jnp.asarray(n, jnp.int32), carry, consts)
+
+
+def _consts_as_arguments(closed: ClosedJaxpr) -> Callable:
+    """A function of (*consts, *args) evaluating ``closed`` with its constants passed in."""
+    j = closed.jaxpr
+    info = j.debug_info
+    if info is not None and info.arg_names is not None:
+        info = info._replace(arg_names=("const",) * len(j.constvars) + tuple(info.arg_names))
+    lifted = Jaxpr(constvars=(), invars=list(j.constvars) + list(j.invars), outvars=j.outvars,
+                   eqns=j.eqns, effects=j.effects, debug_info=info)
+    return jaxpr_as_fun(ClosedJaxpr(lifted, ()))
 
 
 def _hoist_closure(body: Callable, carry: Any):
@@ -55,7 +65,7 @@ def _hoist_closure(body: Callable, carry: Any):
         return out_leaves
 
     closed = jax.make_jaxpr(flat_body)(*flat)
-    run = jaxpr_as_fun(ClosedJaxpr(pe.convert_constvars_jaxpr(closed.jaxpr), ()))
+    run = _consts_as_arguments(closed)
 
     def fn(i, c, active, *consts):
         leaves = jax.tree_util.tree_leaves((i, c, active))
@@ -140,7 +150,7 @@ def _hoist_branch(fn: Callable, operand: Any):
         return out_leaves
 
     closed = jax.make_jaxpr(flat_fn)(*flat)
-    run = jaxpr_as_fun(ClosedJaxpr(pe.convert_constvars_jaxpr(closed.jaxpr), ()))
+    run = _consts_as_arguments(closed)
 
     def g(op, *consts):
         return jax.tree_util.tree_unflatten(out_tree[0],

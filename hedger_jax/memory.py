@@ -17,7 +17,6 @@ The stored data are never corrupted by either event.
 """
 from __future__ import annotations
 
-import functools
 from typing import Any, NamedTuple
 
 import jax
@@ -85,17 +84,6 @@ def init_memory(config: HedgerConfig) -> Memory:
         flags=jnp.zeros((), jnp.int32),
         index=_grid.empty(config) if uses_index(config) else None,
     )
-
-
-@functools.lru_cache(maxsize=64)
-def largest_array_bytes(config: HedgerConfig) -> int:
-    """Bytes of the largest array of a memory of this config (the grid index's tables
-    included: at 3 x 20,000 points the index's sorted copy of the points is twice the point
-    array). What ``hedger_jax.runtime.serial_codegen_wanted`` decides on: XLA's CPU compiler
-    splits the small gathers and scatters of a training step into thread tasks by the size
-    of the array they read."""
-    shapes = jax.eval_shape(functools.partial(init_memory, config))
-    return max(int(np.prod(x.shape)) * x.dtype.itemsize for x in jax.tree_util.tree_leaves(shapes))
 
 
 def uses_index(config: HedgerConfig) -> bool:

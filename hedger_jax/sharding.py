@@ -35,7 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from hedger_jax.runtime import jit_serial_codegen
+from hedger_jax.cpu import jit as _jit
 
 AXIS = "seeds"
 PER_DEVICE_MODES = ("auto", "map", "vmap")
@@ -86,23 +86,20 @@ def per_device(fn: Callable, mesh: Mesh, mode: str) -> Callable:
 
 
 @functools.lru_cache(maxsize=32)
-def _compiled(train_fn: Callable, mesh: Mesh, mode: str, serial: bool):
+def _compiled(train_fn: Callable, mesh: Mesh, mode: str):
     sharding = NamedSharding(mesh, PartitionSpec(AXIS))
-    fn = jit_serial_codegen(per_device(train_fn, mesh, mode), enabled=serial,
-                            in_shardings=sharding, out_shardings=sharding)
+    fn = _jit(per_device(train_fn, mesh, mode), in_shardings=sharding, out_shardings=sharding)
     return fn, sharding
 
 
 def sharded_train(train_fn: Callable, devices: Optional[Sequence[Any]] = None,
-                  per_device: str = "auto", serial: Optional[bool] = None):
+                  per_device: str = "auto"):
     """``keys -> outputs``: ``train_fn`` over the seed axis of keys, split across ``devices``
     (see ``shard_seeds``). The number of seeds must be a multiple of the number of devices
     (``shard_seeds`` pads)."""
     mesh = seed_mesh(devices)
     mode = resolve_per_device(per_device, mesh)
-    if serial is None:
-        serial = mode == "map" and jax.default_backend() == "cpu"
-    fn, sharding = _compiled(train_fn, mesh, mode, bool(serial))
+    fn, sharding = _compiled(train_fn, mesh, mode)
 
     def run(keys):
         return fn(jax.device_put(keys, sharding))
@@ -111,14 +108,11 @@ def sharded_train(train_fn: Callable, devices: Optional[Sequence[Any]] = None,
 
 
 def shard_seeds(train_fn: Callable, keys: jax.Array, devices: Optional[Sequence[Any]] = None,
-                per_device: str = "auto", serial: Optional[bool] = None):
+                per_device: str = "auto"):
     """Run ``train_fn`` for every key, the seeds split across ``devices``.
 
     train_fn: key -> pytree (e.g. ``make_train(...).train``); keys: (n_seeds, ...) raw or typed
-    PRNG keys. per_device: "auto" | "map" | "vmap" (module doc). serial: compile with
-    ``hedger_jax.runtime.serial_codegen`` (None: for "map" on the CPU, where each device runs
-    one seed at a time and XLA's splitting of small operations over threads only competes
-    with the other devices). Returns the outputs with leading axis n_seeds, sharded over the
+    PRNG keys. per_device: "auto" | "map" | "vmap" (module doc). Returns the outputs with leading axis n_seeds, sharded over the
     devices. Compiles once per (train_fn, devices, mode, n_seeds).
     """
     mesh = seed_mesh(devices)
@@ -131,7 +125,7 @@ def shard_seeds(train_fn: Callable, keys: jax.Array, devices: Optional[Sequence[
     pad = (-n) % n_dev
     if pad:
         keys = jnp.concatenate([keys, jnp.repeat(keys[-1:], pad, axis=0)])
-    out = sharded_train(train_fn, list(mesh.devices.flat), per_device, serial)(keys)
+    out = sharded_train(train_fn, list(mesh.devices.flat), per_device)(keys)
     if pad:
         out = jax.tree_util.tree_map(lambda x: x[:n], out)
     return out

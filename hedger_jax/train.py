@@ -10,7 +10,7 @@ from hedger_jax.config import HedgerConfig
 from hedger_jax.greedy import greedy_candidates, greedy_value_from
 from hedger_jax.memory import (FLAG_NONFINITE, Memory, add_scaled, map_queries, scale_inputs,
                                select_neighbours)
-from hedger_jax.predict import predict_from_neighbours, predict_scaled
+from hedger_jax.prediction import predict_from_neighbours, predict_scaled
 from hedger_jax.replay_cache import cached_neighbours
 
 

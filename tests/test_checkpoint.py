@@ -268,7 +268,7 @@ def test_neighbour_index_is_rebuilt_on_load(tmp_path):
     import jax
 
     from hedger_jax.memory import uses_index
-    from hedger_jax.predict import predict
+    from hedger_jax.prediction import predict
 
     cfg = CFG.replace(neighbour_index="grid", full_policy="error")
     assert uses_index(cfg)

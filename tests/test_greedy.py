@@ -336,7 +336,7 @@ def test_greedy_value_from_a_caller_batch_equals_greedy_value(continuous):
     (greedy_candidates + greedy_value_from); the result must be greedy_value's."""
     from hedger_jax.greedy import greedy_candidates, greedy_value_from
     from hedger_jax.memory import scale_inputs
-    from hedger_jax.predict import predict_scaled
+    from hedger_jax.prediction import predict_scaled
 
     kw = dict(capacity=256, bandwidth=0.15, max_neighbours=16)
     cfg = (HedgerConfig(2, 1, action_low=(-1.0,), action_high=(1.0,), **kw) if continuous

@@ -15,7 +15,7 @@ from hedger_jax import index as gi
 from hedger_jax.config import HedgerConfig
 from hedger_jax.memory import (add_points, add_scaled, init_memory, refresh_index,
                                select_neighbours)
-from hedger_jax.predict import predict_scaled
+from hedger_jax.prediction import predict_scaled
 from hedger_jax.train import Transition, train_episode
 
 DISCRETE = ((-1.0,), (0.0,), (1.0,))
@@ -997,7 +997,7 @@ def test_writes_with_the_loop_kernel_insertion_stay_exact(monkeypatch):
     recent list that overflows (appends after it) and a saturated index."""
     calls = []
     blocks = gi._insert_by_blocks
-    monkeypatch.setattr(gi, "loop_kernels_enabled", lambda: True)
+    monkeypatch.setattr(gi, "cpu_kernels", lambda: True)
     monkeypatch.setattr(gi, "_insert_by_blocks", lambda *a: calls.append(1) or blocks(*a))
     mg = _run_writes("overwrite_oldest", 310, 1200, [150, 90, 400, 30, 500, 30], seed=14)
     assert calls and int(mg.size) == 310

@@ -68,7 +68,7 @@ def test_inside_a_vmapped_cond_with_a_batched_predicate(monkeypatch, kernels, me
     constant): vmapped continuous-action training with the grid index did, through the
     exploration's cond. Every form (sort-free with the packed compaction, and top_k) traces
     there and gives the members' own answers."""
-    monkeypatch.setattr(kselect, "loop_kernels_enabled", lambda: kernels)
+    monkeypatch.setattr(kselect, "cpu_kernels", lambda: kernels)
     rng = np.random.default_rng(members)
     values = jnp.asarray(rng.random((members, 96)).astype(np.float32))
     pred = jnp.asarray(rng.random(members) < 0.5)
@@ -96,7 +96,7 @@ def test_loop_kernel_form_avoids_top_k_at_every_batch_size(monkeypatch):
     """With loop kernels on (``HEDGER_JAX_LOOP_KERNELS=1``), single vectors and vmapped
     batches of any size (nested vmaps included) compile without XLA's TopK custom call or a
     sort; without loop kernels, or with ``kernel_form=False``, top_k."""
-    monkeypatch.setattr(kselect, "loop_kernels_enabled", lambda: True)
+    monkeypatch.setattr(kselect, "cpu_kernels", lambda: True)
     kselect._smallest_k_fn.cache_clear()
 
     def hlo(depth, shape, **kw):
@@ -108,7 +108,7 @@ def test_loop_kernel_form_avoids_top_k_at_every_batch_size(monkeypatch):
         text = hlo(depth, shape)
         assert "TopK" not in text and " sort(" not in text, shape
     assert "TopK" in hlo(0, (96,), kernel_form=False)
-    monkeypatch.setattr(kselect, "loop_kernels_enabled", lambda: False)
+    monkeypatch.setattr(kselect, "cpu_kernels", lambda: False)
     kselect._smallest_k_fn.cache_clear()
     assert "TopK" in hlo(0, (96,)) and "TopK" in hlo(1, (64, 96))
     kselect._smallest_k_fn.cache_clear()
@@ -118,7 +118,7 @@ def test_many_members_one_after_another_match_the_batched_search(monkeypatch):
     """From ``MAP_MEMBERS`` vmapped members on, the members are searched one after another
     (a scan in the program); the answers are bit for bit those of the batched search (forced
     by a huge ``MAP_MEMBERS``), for a flat and a nested vmap, and equal the stable sort's."""
-    monkeypatch.setattr(kselect, "loop_kernels_enabled", lambda: True)
+    monkeypatch.setattr(kselect, "cpu_kernels", lambda: True)
     rng = np.random.default_rng(5)
     payload = jnp.arange(96, dtype=jnp.int32) * 3 + 1
 
@@ -194,9 +194,7 @@ _REPLAY_SCRIPT = """
 import jax, jax.numpy as jnp, numpy as np
 from hedger_jax.config import HedgerConfig
 from hedger_jax.memory import add_points, init_memory, refresh_index
-from hedger_jax.runtime import loop_kernels_enabled
 from hedger_jax.train import Transition, train_episode
-assert loop_kernels_enabled()
 cfg = HedgerConfig(state_dim=2, action_dim=1, capacity=3000, bandwidth=0.05,
                    max_neighbours=16, neighbour_index="grid", index_levels=1)
 rng = np.random.default_rng(5)
@@ -222,8 +220,10 @@ def test_training_replay_compiles_into_one_kernel_with_loop_kernels():
     its flags once), the reverse replay of an episode over a one-level grid has no TopK
     custom call, so XLA compiles the replay's own loop into a single kernel
     ("xla_cpu_small_call")."""
+    from hedger_jax import cpu
+
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
-    env["HEDGER_JAX_LOOP_KERNELS"] = "1"
+    env["XLA_FLAGS"] = " ".join(cpu.flags(loop_kernels=True))
     out = subprocess.run([sys.executable, "-c", _REPLAY_SCRIPT], env=env, capture_output=True,
                          text=True, timeout=600)
     assert out.returncode == 0, out.stderr[-2000:]

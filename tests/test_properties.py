@@ -14,7 +14,7 @@ from hedger_jax.config import HedgerConfig
 from hedger_jax.greedy import greedy_value
 from hedger_jax.lwr import design_matrix, hull_contains, local_fit
 from hedger_jax.memory import Memory
-from hedger_jax.predict import predict_scaled
+from hedger_jax.prediction import predict_scaled
 from hedger_jax.train import region_update
 
 K, D = 16, 3                     # neighbour slots (masked) and input dimension

@@ -17,7 +17,7 @@ _SCRIPT = textwrap.dedent("""
     import jax, jax.numpy as jnp, numpy as np
     from hedger_jax.config import HedgerConfig
     from hedger_jax.memory import add_points, init_memory, refresh_index
-    from hedger_jax.predict import predict
+    from hedger_jax.prediction import predict
     from hedger_jax.sharding import shard_seeds
 
     assert len(jax.devices()) == 2, jax.devices()
