@@ -28,12 +28,13 @@ from typing import Any, NamedTuple, Optional
 import jax
 import jax.numpy as jnp
 
-from hedger_jax.config import HedgerConfig
+from hedger_jax.config import HedgerConfig, reject_traced
 from hedger_jax import rng
 from hedger_jax.greedy import (greedy_action, greedy_action_from_uniform, greedy_candidates,
                                greedy_choice, greedy_draws)
 from hedger_jax.loops import masked_fori_loop
 from hedger_jax.memory import Memory, init_memory, refresh_index
+from hedger_jax.params import HedgerParams
 from hedger_jax.replay_cache import (REUSE_MIN_CAPACITY, StepNeighbours, missing, record_shapes,
                                      replay_sets)
 from hedger_jax.replay_cache import usable as replay_cache_usable
@@ -76,6 +77,8 @@ class RunConfig:
     reuse_neighbours: Optional[bool] = None
 
     def __post_init__(self):
+        for field in dataclasses.fields(self):
+            reject_traced("RunConfig", field.name, getattr(self, field.name))
         if not (0.0 <= self.epsilon <= 1.0):
             raise ValueError(f"epsilon: must be in [0, 1], got {self.epsilon}")
         if self.exploration not in EXPLORATION:
@@ -142,6 +145,11 @@ def _success(info: Any, terminated: jax.Array) -> jax.Array:
     return jnp.asarray(terminated, bool)
 
 
+def run_params(config: HedgerConfig, run: "RunConfig", params: Optional[HedgerParams]):
+    """``params``, or the config's and run config's values as constants when None."""
+    return HedgerParams.defaults(config, run) if params is None else params
+
+
 def random_action(config: HedgerConfig, key: jax.Array) -> jax.Array:
     """A uniformly random action (A,): from the discrete set or in the box."""
     return _random_action_from_uniform(config, rng.uniform(key, config.action_dim))
@@ -159,7 +167,8 @@ def _random_action_from_uniform(config: HedgerConfig, u: jax.Array) -> jax.Array
 
 
 def explore_action(config: HedgerConfig, run: RunConfig, memory: Memory, obs: jax.Array,
-                   key: jax.Array, greedy_only: Any = False) -> jax.Array:
+                   key: jax.Array, greedy_only: Any = False,
+                   params: Optional[HedgerParams] = None) -> jax.Array:
     """Epsilon-greedy action (A,) for one observation (S,).
 
     All its randomness (the coin, the greedy policy's tie-breaks and fallback, the
@@ -167,26 +176,28 @@ def explore_action(config: HedgerConfig, run: RunConfig, memory: Memory, obs: ja
     ``greedy_only`` (bool (), may be traced): instead, exactly ``greedy_action(config, memory,
     obs, key)[0]`` -- one copy of the greedy search serves both (``make_train``'s block).
     """
-    return _explore(config, run, memory, obs, key, greedy_only, record=False)
+    return _explore(config, run, memory, obs, key, greedy_only, False, params)
 
 
 def explore_action_recorded(config: HedgerConfig, run: RunConfig, memory: Memory,
-                            obs: jax.Array, key: jax.Array, greedy_only: Any = False):
+                            obs: jax.Array, key: jax.Array, greedy_only: Any = False,
+                            params: Optional[HedgerParams] = None):
     """``explore_action`` and the neighbour sets its greedy search found, for the replay of
     the episode (``rollout`` records them, ``train_prefix`` reuses them):
     -> (action (A,), ``replay_cache.StepNeighbours``)."""
-    return _explore(config, run, memory, obs, key, greedy_only, record=True)
+    return _explore(config, run, memory, obs, key, greedy_only, True, params)
 
 
 def _explore(config: HedgerConfig, run: RunConfig, memory: Memory, obs: jax.Array,
-             key: jax.Array, greedy_only: Any, record: bool):
+             key: jax.Array, greedy_only: Any, record: bool, params=None):
+    p = run_params(config, run, params)
     a_dim = config.action_dim
     n_greedy = greedy_draws(config)
     n_explore = 2 * a_dim if run.exploration == "gaussian" else a_dim
     u = rng.uniform(key, 1 + n_greedy + n_explore)
     ue = u[1 + n_greedy:]
     u_greedy = u[1:1 + n_greedy]
-    explore_now = u[0] < run.epsilon
+    explore_now = u[0] < p.epsilon
     if greedy_only is not False:
         greedy_only = jnp.asarray(greedy_only, bool)
         u_greedy = jnp.where(greedy_only, rng.uniform(key, n_greedy), u_greedy)
@@ -195,8 +206,8 @@ def _explore(config: HedgerConfig, run: RunConfig, memory: Memory, obs: jax.Arra
 
     def greedy(_):
         if not record:
-            return greedy_action_from_uniform(config, memory, obs, u_greedy)[0]
-        action, _, _, sets = greedy_choice(config, memory, obs, u_greedy)
+            return greedy_action_from_uniform(config, memory, obs, u_greedy, params)[0]
+        action, _, _, sets = greedy_choice(config, memory, obs, u_greedy, params)
         return action, StepNeighbours(memory.size, sets.candidates, sets.chosen,
                                       jnp.ones((), bool), sets.has_chosen)
 
@@ -212,14 +223,15 @@ def _explore(config: HedgerConfig, run: RunConfig, memory: Memory, obs: jax.Arra
     action = out[0] if record else out
     low = jnp.asarray(config.action_low, jnp.float32)
     high = jnp.asarray(config.action_high, jnp.float32)
-    noise = run.noise_std * rng.normal_from_uniform(ue[:a_dim], ue[a_dim:])
+    noise = p.noise_std * rng.normal_from_uniform(ue[:a_dim], ue[a_dim:])
     action = jnp.where(explore_now, jnp.clip(action + noise, low, high), action)
     if not record:
         return action
     return action, out[1]._replace(has_chosen=out[1].has_chosen & ~explore_now)
 
 
-def training_act(config: HedgerConfig, run: RunConfig, memory: Memory, greedy_only: Any = False):
+def training_act(config: HedgerConfig, run: RunConfig, memory: Memory, greedy_only: Any = False,
+                 params: Optional[HedgerParams] = None):
     """The rollout's ``act`` of phase two: ``explore_action`` (reading, not carrying, the
     memory), with the greedy searches' neighbour sets recorded for ``train_prefix`` when
     ``run.reuse_neighbours``."""
@@ -228,13 +240,14 @@ def training_act(config: HedgerConfig, run: RunConfig, memory: Memory, greedy_on
         reuse = config.capacity >= REUSE_MIN_CAPACITY
     if reuse and replay_cache_usable(config):
         def act(key, obs, act_state):
-            action, record = explore_action_recorded(config, run, memory, obs, key, greedy_only)
+            action, record = explore_action_recorded(config, run, memory, obs, key, greedy_only,
+                                                     params)
             return action, act_state, record
 
         act.record_like = record_shapes(config, greedy_candidates(config).shape[0])
     else:
         def act(key, obs, act_state):
-            return explore_action(config, run, memory, obs, key, greedy_only), act_state
+            return explore_action(config, run, memory, obs, key, greedy_only, params), act_state
     return act
 
 
@@ -309,7 +322,8 @@ def _rollout(env: Any, env_params: Any, act, key: jax.Array, max_steps: int,
 
 
 def train_prefix(config: HedgerConfig, memory: Memory, episode: Transition, length: jax.Array,
-                 neighbours: Optional[StepNeighbours] = None):
+                 neighbours: Optional[StepNeighbours] = None,
+                 params: Optional[HedgerParams] = None):
     """Reverse replay of the first ``length`` steps of an episode (newest first).
 
     Same result as ``train_episode`` on an episode whose steps >= length are padding, but it
@@ -326,7 +340,7 @@ def train_prefix(config: HedgerConfig, memory: Memory, episode: Transition, leng
         cached = None
         if neighbours is not None:
             cached = replay_sets(neighbours, t, length) + (width,)
-        mem, _ = train_step(config, mem, step._replace(valid=step.valid & active), cached)
+        mem, _ = train_step(config, mem, step._replace(valid=step.valid & active), cached, params)
         return mem
 
     # Under vmap over seeds (each with its own length) a plain fori_loop would select between
@@ -420,7 +434,8 @@ def evaluate_policy(env: Any, env_params: Any, act, key: jax.Array, n_episodes: 
 
 
 def evaluate(env: Any, env_params: Any, config: HedgerConfig, memory: Memory, key: jax.Array,
-             n_episodes: int, max_steps: int, *, refresh: bool = True) -> Evaluation:
+             n_episodes: int, max_steps: int, *, refresh: bool = True,
+             params: Optional[HedgerParams] = None) -> Evaluation:
     """Greedy policy, learning off, ``n_episodes`` from ``env.evaluation_starts`` (vmapped).
 
     The metric is the mean number of steps to the goal; an episode that does not reach it
@@ -432,7 +447,7 @@ def evaluate(env: Any, env_params: Any, config: HedgerConfig, memory: Memory, ke
         memory = refresh_index(config, memory)
 
     def act(obs, k):
-        return greedy_action(config, memory, obs, k)[0]
+        return greedy_action(config, memory, obs, k, params)[0]
 
     steps, success = evaluate_policy(env, env_params, act, key, n_episodes, max_steps)
     return Evaluation(jnp.mean(steps), jnp.mean(success.astype(jnp.float32)))
@@ -449,20 +464,20 @@ class Train(NamedTuple):
 
 
 def _phase1_fn(env, env_params, config: HedgerConfig, phase1, max_steps: int):
-    """memory, key -> (memory, points) for the chosen phase-1 source."""
+    """memory, key, params -> (memory, points) for the chosen phase-1 source."""
     if phase1 is None:
-        return lambda memory, key: (memory, jnp.zeros((), jnp.int32))
+        return lambda memory, key, params: (memory, jnp.zeros((), jnp.int32))
     if isinstance(phase1, Transition):
         episodes = jax.tree_util.tree_map(jnp.asarray, phase1)
         if episodes.reward.ndim != 2:
             raise ValueError("phase1 demonstrations: expected a Transition with leading axes "
                              f"(episodes, steps), got reward shape {episodes.reward.shape}")
 
-        def learn_demos(memory, key):
+        def learn_demos(memory, key, params):
             del key
 
             def body(mem, ep):
-                mem, _ = train_episode(config, mem, ep)
+                mem, _ = train_episode(config, mem, ep, params)
                 return refresh_index(config, mem), None
 
             memory, _ = jax.lax.scan(body, memory, episodes)
@@ -472,7 +487,7 @@ def _phase1_fn(env, env_params, config: HedgerConfig, phase1, max_steps: int):
     policy, n_episodes = phase1[0], int(phase1[1])
     start = phase1[2] if len(phase1) > 2 else None
 
-    def learn_policy(memory, key):
+    def learn_policy(memory, key, params):
         def body(carry, k):
             mem, points = carry
             k_reset, k_init, k_run = jax.random.split(k, 3)
@@ -482,7 +497,7 @@ def _phase1_fn(env, env_params, config: HedgerConfig, phase1, max_steps: int):
                 obs0, s0 = env.reset_to(k_reset, env_params, jnp.asarray(start, jnp.float32))
             ep, length = rollout(env, env_params, policy.act, k_run, max_steps, obs0, s0,
                                  policy.init(k_init))
-            mem = refresh_index(config, train_prefix(config, mem, ep, length))
+            mem = refresh_index(config, train_prefix(config, mem, ep, length, params=params))
             return (mem, points + length), None
 
         (memory, points), _ = jax.lax.scan(body, (memory, jnp.zeros((), jnp.int32)),
@@ -509,19 +524,19 @@ def make_train(env: Any, config: HedgerConfig, run: RunConfig, *, env_params: An
     # The neighbour index is refreshed after every episode (phase 1's included), so that the
     # evaluations, which follow an episode or phase 1, need no refresh of their own: one copy
     # of the refresh in the program.
-    def do_eval(memory, key, points, episodes, mean_len):
+    def do_eval(memory, key, points, episodes, mean_len, params):
         ev = evaluate(env, env_params, config, memory, key, run.eval_episodes,
-                      run.eval_max_steps, refresh=False)
+                      run.eval_max_steps, refresh=False, params=params)
         return BlockResult(ev, points, episodes, mean_len, memory.size, memory.flags)
 
-    def phase1(key):
+    def phase1(key, params):
         k_phase1, k_eval, k_run = jax.random.split(key, 3)
-        memory, points = phase1_fn(init_memory(config), k_phase1)
+        memory, points = phase1_fn(init_memory(config), k_phase1, params)
         return RunState(memory, k_run, points, jnp.zeros((), jnp.int32)), k_eval
 
     n_eval = int(run.eval_episodes)
 
-    def block(state: RunState, first: jax.Array, k_eval0: jax.Array):
+    def block(state: RunState, first: jax.Array, k_eval0: jax.Array, params):
         """One evaluation block. ``first`` (bool ()): the evaluation right after phase 1
         (no episodes, the evaluation key ``k_eval0`` from ``phase1``, the run key kept).
 
@@ -560,13 +575,14 @@ def make_train(env: Any, config: HedgerConfig, run: RunConfig, *, env_params: An
             s0 = jax.tree_util.tree_map(lambda a, b: jnp.where(train_now, a, b[e]), s0,
                                         eval_states0)
 
-            act = training_act(config, run, memory, ~train_now)
+            act = training_act(config, run, memory, ~train_now, params)
             ep, length, success, record = _rollout(
                 env, env_params, act, jnp.where(train_now, k_run, eval_keys[e]), max_steps,
                 obs0, s0, limit=jnp.where(train_now, max_steps, run.eval_max_steps))
             memory = jax.lax.cond(
                 train_now,
-                lambda m: refresh_index(config, train_prefix(config, m, ep, length, record)),
+                lambda m: refresh_index(config, train_prefix(config, m, ep, length, record,
+                                                             params)),
                 lambda m: m, memory)
             learnt = jnp.where(train_now, length, 0)
             at = jnp.where(train_now, n_eval, j)                     # n_eval: not recorded
@@ -588,21 +604,21 @@ def make_train(env: Any, config: HedgerConfig, run: RunConfig, *, env_params: An
         ev = Evaluation(jnp.mean(eval_steps), jnp.mean(eval_success.astype(jnp.float32)))
         return new_state, BlockResult(ev, points, episodes, mean_len, memory.size, memory.flags)
 
-    def init(key):
-        state, k_eval = phase1(key)
+    def init(key, params: Optional[HedgerParams] = None):
+        state, k_eval = phase1(key, params)
         return state, do_eval(state.memory, k_eval, state.points, state.episodes,
-                              jnp.float32(0.0))
+                              jnp.float32(0.0), params)
 
-    def run_block(state: RunState):
-        return block(state, jnp.zeros((), bool), state.key)
+    def run_block(state: RunState, params: Optional[HedgerParams] = None):
+        return block(state, jnp.zeros((), bool), state.key, params)
 
-    def train(key):
+    def train(key, params: Optional[HedgerParams] = None):
         # One scan over the n_blocks + 1 evaluations (the first right after phase 1, with no
         # episodes), so the evaluation appears once in the program: the same results as
         # init then n_blocks run_blocks, about half the compile time of writing it that way.
-        state, k_eval0 = phase1(key)
+        state, k_eval0 = phase1(key, params)
         firsts = jnp.arange(run.n_blocks + 1) == 0
-        state, results = jax.lax.scan(lambda s, f: block(s, f, k_eval0), state, firsts)
+        state, results = jax.lax.scan(lambda s, f: block(s, f, k_eval0, params), state, firsts)
         return state, results
 
     return Train(train, init, run_block)

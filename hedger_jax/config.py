@@ -33,6 +33,34 @@ AUTO_GRID_MAX_FRACTION = 0.02
 GRID_MAX_CAPACITY = 1 << 29
 
 
+class StaticFieldError(TypeError):
+    """A static setting (a ``HedgerConfig`` or ``RunConfig`` field) was given a traced value,
+    e.g. by ``jax.vmap`` over a function that builds the config."""
+
+
+def reject_traced(owner: str, name: str, value: Any) -> None:
+    """Raise ``StaticFieldError`` if ``value`` (or an element of it) is a JAX tracer."""
+    import jax
+
+    items = value if isinstance(value, (tuple, list)) else (value,)
+    for item in items:
+        if isinstance(item, (tuple, list)):
+            reject_traced(owner, name, item)
+        elif isinstance(item, jax.core.Tracer):
+            traced = name in _TRACED_FIELDS
+            hint = (f"put it in HedgerParams instead (HedgerParams.create(config, {name}=...)), "
+                    "whose fields are traced" if traced else
+                    "it fixes shapes or loop lengths; sweep it with one program per value")
+            raise StaticFieldError(f"{name}: {owner} fields are static and cannot be traced "
+                                   f"or vmapped; {hint}")
+
+
+#: The config fields whose values ``HedgerParams`` carries as traced values.
+_TRACED_FIELDS = ("bandwidth", "min_weight", "k_thresh", "k_min", "alpha", "gamma",
+                  "default_value", "ridge", "ivh_tol", "input_offset", "input_scale", "use_ivh",
+                  "region_update", "epsilon", "noise_std")
+
+
 def _tuple_of_floats(name: str, value: Any, length: int) -> Tuple[float, ...]:
     try:
         out = tuple(float(v) for v in value)
@@ -123,9 +151,12 @@ class HedgerConfig:
     index_bounds: Optional[Tuple[Tuple[float, float], ...]] = None
     index_levels: Optional[int] = None
     index_recent: Optional[int] = None
+    max_bandwidth: Optional[float] = None
 
     def __post_init__(self):
         set_ = lambda name, value: object.__setattr__(self, name, value)  # noqa: E731
+        for field in dataclasses.fields(self):
+            reject_traced("HedgerConfig", field.name, getattr(self, field.name))
         for name in ("state_dim", "action_dim", "capacity", "max_neighbours",
                      "greedy_samples", "greedy_iters"):
             value = getattr(self, name)
@@ -159,6 +190,12 @@ class HedgerConfig:
         if not (math.isfinite(self.k_thresh) and self.k_thresh > 0):
             raise ValueError(f"k_thresh: must be a finite number > 0, got {self.k_thresh}")
         set_("k_thresh", float(self.k_thresh))
+        if self.max_bandwidth is None:
+            set_("max_bandwidth", float(self.bandwidth))
+        if not (math.isfinite(self.max_bandwidth) and self.max_bandwidth >= self.bandwidth):
+            raise ValueError(f"max_bandwidth: must be a finite number >= bandwidth "
+                             f"({self.bandwidth}), got {self.max_bandwidth}")
+        set_("max_bandwidth", float(self.max_bandwidth))
         if self.k_min is None:
             set_("k_min", d + 1)
         if isinstance(self.k_min, bool) or int(self.k_min) != self.k_min:
@@ -260,6 +297,12 @@ class HedgerConfig:
         return self.dim + 1
 
     @property
+    def max_k_thresh(self) -> float:
+        """The largest selection radius a ``HedgerParams`` may use with this config: k_thresh
+        scaled up to ``max_bandwidth`` (what the grid index's cells are sized for)."""
+        return self.k_thresh * self.max_bandwidth / self.bandwidth
+
+    @property
     def index_kind(self) -> str:
         """The neighbour search in use: "brute" or "grid" ("auto" resolved by capacity)."""
         if self.neighbour_index == "auto":
@@ -280,6 +323,8 @@ class HedgerConfig:
         """A copy with some fields changed (re-validated; derived fields recomputed)."""
         if "bandwidth" in changes or "min_weight" in changes:
             changes.setdefault("k_thresh", None)
+        if "bandwidth" in changes and self.max_bandwidth == self.bandwidth:
+            changes.setdefault("max_bandwidth", None)
         if "state_dim" in changes or "action_dim" in changes:
             changes.setdefault("k_min", None)
         return dataclasses.replace(self, **changes)

@@ -21,6 +21,7 @@ import jax.numpy as jnp
 from hedger_jax import rng
 from hedger_jax.config import HedgerConfig
 from hedger_jax.memory import Memory, map_queries
+from hedger_jax.params import resolve
 from hedger_jax.prediction import Prediction, predict_detailed
 
 
@@ -191,17 +192,18 @@ def _packed(p: Prediction) -> jax.Array:
     return jnp.where(p.mask, p.indices, -1)
 
 
-def _discrete_values(config: HedgerConfig, memory: Memory, state: jax.Array):
+def _discrete_values(config: HedgerConfig, memory: Memory, state: jax.Array, params=None):
     """-> (actions (n, A), values (n,), known (n,), K of each (n, k) as ``_packed``)."""
     actions = jnp.asarray(config.discrete_actions, jnp.float32)          # (n, A)
-    p = map_queries(config, lambda a: predict_detailed(config, memory, state, a), actions)
+    p = map_queries(config, lambda a: predict_detailed(config, memory, state, a, params),
+                    actions)
     return actions, p.value, p.known, _packed(p)
 
 
 def _continuous_search(config: HedgerConfig, memory: Memory, state: jax.Array, initial=None,
-                       with_aux: bool = False):
+                       with_aux: bool = False, params=None):
     def f(a):
-        p = predict_detailed(config, memory, state, a[None])
+        p = predict_detailed(config, memory, state, a[None], params)
         return (p.value, p.known, _packed(p)) if with_aux else (p.value, p.known)
 
     return search_1d(f, config.action_low[0], config.action_high[0], config.greedy_samples,
@@ -217,25 +219,26 @@ def greedy_candidates(config: HedgerConfig) -> jax.Array:
 
 
 def greedy_value_from(config: HedgerConfig, memory: Memory, state: jax.Array,
-                      values: jax.Array, known: jax.Array):
+                      values: jax.Array, known: jax.Array, params=None):
     """``greedy_value`` given Q(state, a) (values, known (n,)) at ``greedy_candidates``
     (evaluated by the caller, e.g. batched with other queries). Same result."""
     if config.is_discrete:
         return jnp.max(values), jnp.any(known)
-    _, value, any_known = _continuous_search(config, memory, state, (values, known))
+    _, value, any_known = _continuous_search(config, memory, state, (values, known),
+                                             params=params)
     return value, any_known
 
 
-def greedy_value(config: HedgerConfig, memory: Memory, state: jax.Array):
+def greedy_value(config: HedgerConfig, memory: Memory, state: jax.Array, params=None):
     """max_a Q(state, a) as used by training: state (S,) -> (value (), known ()).
 
     Deterministic (no key). Unknown candidates count as ``default_value``; ``known`` says
     whether any candidate was known.
     """
     if config.is_discrete:
-        _, values, known, _ = _discrete_values(config, memory, state)
+        _, values, known, _ = _discrete_values(config, memory, state, params)
         return jnp.max(values), jnp.any(known)
-    _, value, known = _continuous_search(config, memory, state)
+    _, value, known = _continuous_search(config, memory, state, params=params)
     return value, known
 
 
@@ -245,20 +248,22 @@ def greedy_draws(config: HedgerConfig) -> int:
 
 
 def greedy_action_from_uniform(config: HedgerConfig, memory: Memory, state: jax.Array,
-                               u: jax.Array):
+                               u: jax.Array, params=None):
     """``greedy_action`` with its randomness given: u float32 (``greedy_draws(config)``,) of
     U[0, 1) draws (tie-breaks, then the random action when nothing is known)."""
     if config.is_discrete:
-        return greedy_choice(config, memory, state, u)[:3]
+        return greedy_choice(config, memory, state, u, params)[:3]
     # Without the neighbour sets: the search then carries none through its loop.
-    return _continuous_choice(config, u, *_continuous_search(config, memory, state))
+    return _continuous_choice(config, u, *_continuous_search(config, memory, state,
+                                                             params=params), params=params)
 
 
-def greedy_choice(config: HedgerConfig, memory: Memory, state: jax.Array, u: jax.Array):
+def greedy_choice(config: HedgerConfig, memory: Memory, state: jax.Array, u: jax.Array,
+                  params=None):
     """``greedy_action_from_uniform`` and the neighbour sets its search found:
     -> (action (A,), value (), known (), ``GreedySets``) for ``hedger_jax.replay_cache``."""
     if config.is_discrete:
-        actions, values, known, sets = _discrete_values(config, memory, state)
+        actions, values, known, sets = _discrete_values(config, memory, state, params)
         n = actions.shape[0]
         ties = values >= jnp.max(values)
         pick = jnp.argmax(jnp.where(ties, u[:n], -1.0))
@@ -268,23 +273,26 @@ def greedy_choice(config: HedgerConfig, memory: Memory, state: jax.Array, u: jax
         # Every action of the set was evaluated: the chosen one's K is known either way.
         return actions[idx], values[idx], any_known, GreedySets(sets, sets[idx],
                                                                 jnp.ones((), bool))
-    x, value, any_known, sets, best = _continuous_search(config, memory, state, with_aux=True)
+    x, value, any_known, sets, best = _continuous_search(config, memory, state, with_aux=True,
+                                                         params=params)
     # A random action (nothing known) was not evaluated: its K is not known.
-    return _continuous_choice(config, u, x, value, any_known) + (
+    return _continuous_choice(config, u, x, value, any_known, params) + (
         GreedySets(sets, best, any_known),)
 
 
-def _continuous_choice(config: HedgerConfig, u: jax.Array, x, value, any_known):
+def _continuous_choice(config: HedgerConfig, u: jax.Array, x, value, any_known, params=None):
     """The search's best sample, or (nothing known) a uniformly random action from u:
     -> (action (A,), value (), known ())."""
     low = jnp.asarray(config.action_low, jnp.float32)
     high = jnp.asarray(config.action_high, jnp.float32)
     rand = jnp.minimum(low + u * (high - low), high)
     action = jnp.where(any_known, x[None], rand)
-    return action, jnp.where(any_known, value, jnp.float32(config.default_value)), any_known
+    default = resolve(config, params).default_value
+    return action, jnp.where(any_known, value, jnp.float32(default)), any_known
 
 
-def greedy_action(config: HedgerConfig, memory: Memory, state: jax.Array, key: jax.Array):
+def greedy_action(config: HedgerConfig, memory: Memory, state: jax.Array, key: jax.Array,
+                  params=None):
     """The greedy action: state (S,), key -> (action (A,), value (), known ()).
 
     Ties among the best discrete actions are broken at random; when nothing is known the
@@ -293,4 +301,4 @@ def greedy_action(config: HedgerConfig, memory: Memory, state: jax.Array, key: j
     loops).
     """
     u = rng.uniform(key, greedy_draws(config))
-    return greedy_action_from_uniform(config, memory, state, u)
+    return greedy_action_from_uniform(config, memory, state, u, params)

@@ -345,15 +345,16 @@ def geometry(config) -> Geometry:
         raise ValueError(f"capacity: the grid index holds at most {_MAX_CAPACITY} slots (int32 "
                          f"positions), got {config.capacity}; use neighbour_index='brute'")
     bounds = default_bounds(config)
-    values = _value_cells(config, config.k_thresh * (1.0 + _SIDE_MARGIN))
-    if _make_level(config, config.k_thresh, bounds, values, 0) is None:
+    radius = config.max_k_thresh
+    values = _value_cells(config, radius * (1.0 + _SIDE_MARGIN))
+    if _make_level(config, radius, bounds, values, 0) is None:
         values = [None] * config.dim        # too many value cells for the budget: uniform
     n_values = int(np.prod([len(v) + 1 for v in values if v is not None] or [1]))
     target = level_target(sum(v is None for v in values))
     wanted = getattr(config, "index_levels", None)
     levels, start = [], 0
     for lv in range(wanted or 32):
-        level = _make_level(config, config.k_thresh / _LEVEL_RATIO ** lv, bounds, values, start)
+        level = _make_level(config, radius / _LEVEL_RATIO ** lv, bounds, values, start)
         if level is None or (levels and level.cells == levels[-1].cells):
             break
         if wanted is None and levels:
@@ -1327,8 +1328,11 @@ def select_orders(config) -> bool:
     return 0 < direct_width(config) < min(config.max_neighbours, config.capacity)
 
 
-def select(config, points: jax.Array, head: jax.Array, index: GridIndex, z: jax.Array):
-    """Exact K of query z (d,) -> (indices int32 (k,), sqdist float32 (k,), mask bool (k,)).
+def select(config, points: jax.Array, head: jax.Array, index: GridIndex, z: jax.Array,
+           k_thresh=None):
+    """Exact K of query z (d,) within ``k_thresh`` (default the config's; at most the radius
+    the index is built for, ``HedgerConfig.max_k_thresh``) -> (indices int32 (k,), sqdist
+    float32 (k,), mask bool (k,)).
 
     Same contract as the brute-force search (k = min(max_neighbours, capacity), +inf where
     there is no candidate; the caller pads, masks and puts K in canonical order), except the
@@ -1338,7 +1342,7 @@ def select(config, points: jax.Array, head: jax.Array, index: GridIndex, z: jax.
     geo = geometry(config)
     n = points.shape[-1]
     k = min(config.max_neighbours, n)
-    r2 = jnp.float32(config.k_thresh) ** 2
+    r2 = jnp.float32(config.k_thresh if k_thresh is None else k_thresh) ** 2
     # The query once (hedger_jax.fusion): its producers (scaling an observation sliced from an
     # episode) were recomputed inside every row and table fusion (training 1.03x, measured).
     z = computed_once(z)

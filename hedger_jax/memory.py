@@ -17,7 +17,7 @@ The stored data are never corrupted by either event.
 """
 from __future__ import annotations
 
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
@@ -26,6 +26,7 @@ import numpy as np
 from hedger_jax import index as _grid
 from hedger_jax.canonical import canonical_order
 from hedger_jax.config import HedgerConfig
+from hedger_jax.params import HedgerParams, resolve
 
 FLAG_FULL = 1
 FLAG_NONFINITE = 2
@@ -104,14 +105,14 @@ def map_queries(config: HedgerConfig, fn, queries):
     return jax.vmap(fn)(queries)
 
 
-def scale_inputs(config: HedgerConfig, state: jax.Array, action: jax.Array) -> jax.Array:
-    """Scaled query z = (concat(state, action) - offset) * scale.
-
-    state (..., S), action (..., A) -> float32 (..., d).
-    """
+def scale_inputs(config: HedgerConfig, state: jax.Array, action: jax.Array,
+                 params: Optional[HedgerParams] = None) -> jax.Array:
+    """Scaled query z = (concat(state, action) - offset) * scale (the params' scaling, or the
+    config's). state (..., S), action (..., A) -> float32 (..., d)."""
+    p = resolve(config, params)
     x = jnp.concatenate([jnp.asarray(state, jnp.float32), jnp.asarray(action, jnp.float32)], -1)
-    offset = jnp.asarray(config.input_offset, jnp.float32)
-    scale = jnp.asarray(config.input_scale, jnp.float32)
+    offset = jnp.asarray(p.input_offset, jnp.float32)
+    scale = jnp.asarray(p.input_scale, jnp.float32)
     return (x - offset) * scale
 
 
@@ -133,8 +134,10 @@ def squared_distances(points: jax.Array, z: jax.Array) -> jax.Array:
     return d2
 
 
-def select_neighbours(config: HedgerConfig, memory: Memory, z: jax.Array) -> Neighbours:
-    """K: the stored points within ``k_thresh`` of the scaled query ``z`` (d,).
+def select_neighbours(config: HedgerConfig, memory: Memory, z: jax.Array,
+                      params: Optional[HedgerParams] = None) -> Neighbours:
+    """K: the stored points within ``k_thresh`` (the params', or the config's) of the scaled
+    query ``z`` (d,).
 
     Brute force: squared distances to every slot, empty slots masked to +inf, then the
     ``max_neighbours`` nearest by ``lax.top_k`` (kept in float32, where top_k is fast), then
@@ -144,6 +147,7 @@ def select_neighbours(config: HedgerConfig, memory: Memory, z: jax.Array) -> Nei
     the last ``refresh_index``.
     """
     capacity = memory.values.shape[-1]
+    k_thresh = resolve(config, params).k_thresh
     if uses_index(config):
         index = memory.index
         if index is None:  # e.g. a memory built by hand: index everything now (exact)
@@ -155,14 +159,15 @@ def select_neighbours(config: HedgerConfig, memory: Memory, z: jax.Array) -> Nei
         # rules; with constant inputs none is needed).
         idx, d2_sel, mask = _grid.select(
             config, jax.lax.stop_gradient(memory.points), memory.head,
-            jax.tree_util.tree_map(jax.lax.stop_gradient, index), jax.lax.stop_gradient(z))
+            jax.tree_util.tree_map(jax.lax.stop_gradient, index), jax.lax.stop_gradient(z),
+            k_thresh)
         return _pad_neighbours(config, idx, d2_sel, mask, ordered=_grid.select_orders(config))
     d2 = squared_distances(memory.points, z)
     d2 = jnp.where(valid_mask(memory), d2, jnp.inf)
     k = min(config.max_neighbours, capacity)
     neg_d2, idx = jax.lax.top_k(-d2, k)
     d2_sel = -neg_d2
-    mask = d2_sel <= jnp.float32(config.k_thresh) ** 2
+    mask = d2_sel <= jnp.float32(k_thresh) ** 2
     return _pad_neighbours(config, idx, d2_sel, mask)
 
 
@@ -216,9 +221,9 @@ def add_scaled(config: HedgerConfig, memory: Memory, z: jax.Array, value: jax.Ar
 
 
 def add_points(config: HedgerConfig, memory: Memory, states: jax.Array, actions: jax.Array,
-               values: jax.Array) -> Memory:
+               values: jax.Array, params: Optional[HedgerParams] = None) -> Memory:
     """Store n points: states (n, S), actions (n, A), values (n,) -> memory. Jittable."""
-    zs = scale_inputs(config, states, actions)
+    zs = scale_inputs(config, states, actions, params)
 
     def body(mem, item):
         z, v = item
@@ -275,9 +280,10 @@ def memory_check(memory: Memory) -> Memory:
     return memory
 
 
-def stored_points(config: HedgerConfig, memory: Memory):
+def stored_points(config: HedgerConfig, memory: Memory, params: Optional[HedgerParams] = None):
     """Host-side view of one memory's valid points: (inputs (n, d) unscaled, values (n,))."""
+    p = resolve(config, params)
     size = int(memory.size)
     z = np.asarray(memory.points)[:, :size].T.astype(np.float64)
-    x = z / np.asarray(config.input_scale) + np.asarray(config.input_offset)
+    x = z / np.asarray(p.input_scale, np.float64) + np.asarray(p.input_offset, np.float64)
     return x, np.asarray(memory.values)[:size]

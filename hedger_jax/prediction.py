@@ -1,12 +1,13 @@
 """Algorithm 1: HEDGER prediction (neighbours -> IVH -> locally weighted regression)."""
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
 
 from hedger_jax.config import HedgerConfig
+from hedger_jax.params import HedgerParams, flag, resolve
 from hedger_jax.lwr import kernel_weights, local_fit_columns
 from hedger_jax.memory import (Memory, Neighbours, scale_inputs, select_neighbours,
                                squared_distances)
@@ -31,13 +32,15 @@ class Prediction(NamedTuple):
     mask: jax.Array
 
 
-def predict_scaled(config: HedgerConfig, memory: Memory, z: jax.Array) -> Prediction:
+def predict_scaled(config: HedgerConfig, memory: Memory, z: jax.Array,
+                   params: Optional[HedgerParams] = None) -> Prediction:
     """Algorithm 1 for a scaled query z (d,). See ``predict_detailed``."""
-    return predict_from_neighbours(config, memory, z, select_neighbours(config, memory, z))
+    return predict_from_neighbours(config, memory, z, select_neighbours(config, memory, z, params),
+                                   params)
 
 
 def predict_from_neighbours(config: HedgerConfig, memory: Memory, z: jax.Array,
-                            nb: Neighbours) -> Prediction:
+                            nb: Neighbours, params: Optional[HedgerParams] = None) -> Prediction:
     """Algorithm 1 for a scaled query z (d,) whose neighbour set K is given (``nb``, in the
     canonical order ``select_neighbours`` returns): the IVH test and the local fit."""
     # Feature-major (d, k), centred on the query: the gathered columns of ``memory.points``
@@ -48,26 +51,27 @@ def predict_from_neighbours(config: HedgerConfig, memory: Memory, z: jax.Array,
     # Distances recomputed from the gathered points (one formula whatever the search method
     # computed), so brute force and the grid index give bit-identical fits.
     sqdist = squared_distances(zt, jnp.zeros((zt.shape[0],), zt.dtype))
-    w = kernel_weights(sqdist, config.bandwidth, nb.mask)
-    fit = local_fit_columns(zt, y, w, nb.mask, ridge=config.ridge, ivh_tol=config.ivh_tol)
+    p = resolve(config, params)
+    w = kernel_weights(sqdist, p.bandwidth, nb.mask)
+    fit = local_fit_columns(zt, y, w, nb.mask, ridge=p.ridge, ivh_tol=p.ivh_tol)
     count = jnp.sum(nb.mask).astype(jnp.int32)
-    known = (count >= config.k_min) & jnp.isfinite(fit.value)
-    if config.use_ivh:
-        known = known & fit.inside
-    value = jnp.where(known, fit.value, jnp.float32(config.default_value))
+    known = (count >= p.k_min) & jnp.isfinite(fit.value)
+    known = flag(p.use_ivh, known & fit.inside, known)
+    value = jnp.where(known, fit.value, jnp.float32(p.default_value))
     return Prediction(value, known, count, nb.indices, w, nb.mask)
 
 
 def predict_detailed(config: HedgerConfig, memory: Memory, state: jax.Array,
-                     action: jax.Array) -> Prediction:
+                     action: jax.Array, params: Optional[HedgerParams] = None) -> Prediction:
     """Algorithm 1 for one query: state (S,), action (A,) -> ``Prediction``.
 
-    Vmap it over queries, candidate actions or memories (seeds).
+    Vmap it over queries, candidate actions, memories (seeds) or params (settings).
     """
-    return predict_scaled(config, memory, scale_inputs(config, state, action))
+    return predict_scaled(config, memory, scale_inputs(config, state, action, params), params)
 
 
-def predict(config: HedgerConfig, memory: Memory, state: jax.Array, action: jax.Array):
+def predict(config: HedgerConfig, memory: Memory, state: jax.Array, action: jax.Array,
+            params: Optional[HedgerParams] = None):
     """Q(s, a): state (S,), action (A,) -> (value f32 (), known bool (), n_neighbours i32 ())."""
-    p = predict_detailed(config, memory, state, action)
+    p = predict_detailed(config, memory, state, action, params)
     return p.value, p.known, p.n_neighbours

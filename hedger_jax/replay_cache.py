@@ -125,7 +125,7 @@ PARTIAL_MIN_QUERIES = 8
 
 
 def merge_appended(config: HedgerConfig, memory: Memory, z: jax.Array, cached: jax.Array,
-                   window, d2w: jax.Array, near: jax.Array) -> Neighbours:
+                   window, d2w: jax.Array, near: jax.Array, k_thresh) -> Neighbours:
     """K of the scaled query z (d,) over the memory, from K over its first size0 slots
     (``cached`` int32 (k,): slots in canonical order, then -1) and the appended points:
     ``appended_window``'s ``window`` (which must ``fit``), their squared distances to z
@@ -134,7 +134,7 @@ def merge_appended(config: HedgerConfig, memory: Memory, z: jax.Array, cached: j
     _, slots, _, _ = window
     k = cached.shape[-1]
     w = d2w.shape[-1]
-    r2 = jnp.float32(config.k_thresh) ** 2
+    r2 = jnp.float32(k_thresh) ** 2
     real = cached >= 0
     old = jnp.where(real, cached, 0)
     pos = true_positions(near, jnp.arange(min(APPENDED_WIDTH, w), dtype=jnp.int32))
@@ -178,7 +178,7 @@ def merge_appended(config: HedgerConfig, memory: Memory, z: jax.Array, cached: j
 
 
 def cached_neighbours(config: HedgerConfig, memory: Memory, zs: jax.Array,
-                      cached: Optional[tuple], search) -> Neighbours:
+                      cached: Optional[tuple], search, k_thresh) -> Neighbours:
     """K of each query zs (q, d): merged from ``cached`` = (sets (q, k), size0 (), ok (q,)
     or () for all) of ``replay_sets``, width) where usable (width, a static int: the most
     appended points looked at, e.g. the episode's length), else ``search(zs)``
@@ -197,12 +197,13 @@ def cached_neighbours(config: HedgerConfig, memory: Memory, zs: jax.Array,
     window = appended_window(memory, size0, width)
     pts, _, appended, fits = window
     d2w = jax.vmap(lambda z: squared_distances(pts, z))(zs)                 # (q, W)
-    near = appended & (d2w <= jnp.float32(config.k_thresh) ** 2)
+    near = appended & (d2w <= jnp.float32(k_thresh) ** 2)
     crowded = jnp.sum(near.astype(jnp.int32), axis=1) > APPENDED_WIDTH      # (q,)
     use = jnp.broadcast_to(jnp.asarray(ok, bool), zs.shape[:1]) & fits & ~crowded
 
     def merged(part):
-        return jax.vmap(lambda z, c, d, m: merge_appended(config, memory, z, c, window, d, m))(
+        return jax.vmap(lambda z, c, d, m: merge_appended(config, memory, z, c, window, d, m,
+                                                          k_thresh))(
             zs[part], sets[part], d2w[part], near[part])
 
     def first_searched(_):

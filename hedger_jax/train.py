@@ -1,12 +1,13 @@
 """Algorithm 2 (HEDGER training) for one experience, and reverse replay of an episode."""
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
 
 from hedger_jax.config import HedgerConfig
+from hedger_jax.params import HedgerParams, flag, resolve
 from hedger_jax.greedy import greedy_candidates, greedy_value_from
 from hedger_jax.memory import (FLAG_NONFINITE, Memory, add_scaled, map_queries, scale_inputs,
                                select_neighbours)
@@ -61,7 +62,8 @@ def region_update(memory: Memory, indices: jax.Array, weights: jax.Array, mask: 
     return memory._replace(values=values, flags=flags.astype(jnp.int32))
 
 
-def train_step(config: HedgerConfig, memory: Memory, transition: Transition, cached=None):
+def train_step(config: HedgerConfig, memory: Memory, transition: Transition, cached=None,
+               params: Optional[HedgerParams] = None):
     """Algorithm 2 for one experience -> (memory, TrainInfo). Jittable, vmappable.
 
     ``cached``: optional neighbour sets found while acting (``replay_cache.replay_sets`` and
@@ -74,37 +76,43 @@ def train_step(config: HedgerConfig, memory: Memory, transition: Transition, cac
     Algorithm 2 updates "each point in K"). An invalid transition changes nothing.
     """
     t = transition
+    p = resolve(config, params)
     valid = jnp.asarray(t.valid, bool)
-    z = scale_inputs(config, t.obs, t.action)
+    z = scale_inputs(config, t.obs, t.action, params)
     # Q(s, a) and the first candidates Q(s', a') of max_a' (the discrete set, or the initial
     # grid of the continuous search) as one vmapped batch: one copy of the neighbour search
     # and fit in the program instead of two (on the CPU, XLA's cost here is mostly per
     # operation, not per query). Same values as predict + greedy_value.
     acts = greedy_candidates(config)                                          # (n, A)
     zs = jnp.concatenate([z[None], scale_inputs(
-        config, jnp.broadcast_to(t.next_obs, (acts.shape[0],) + t.next_obs.shape), acts)])
+        config, jnp.broadcast_to(t.next_obs, (acts.shape[0],) + t.next_obs.shape), acts,
+        params)])
     if cached is None:
-        batch = jax.vmap(lambda zz: predict_scaled(config, memory, zz))(zs)
+        batch = jax.vmap(lambda zz: predict_scaled(config, memory, zz, params))(zs)
     else:
         nb = cached_neighbours(config, memory, zs, cached, lambda q: map_queries(
-            config, lambda zz: select_neighbours(config, memory, zz), q))
-        batch = jax.vmap(lambda zz, n: predict_from_neighbours(config, memory, zz, n))(zs, nb)
-    p = jax.tree_util.tree_map(lambda x: x[0], batch)
-    q_next, _ = greedy_value_from(config, memory, t.next_obs, batch.value[1:], batch.known[1:])
+            config, lambda zz: select_neighbours(config, memory, zz, params), q), p.k_thresh)
+        batch = jax.vmap(lambda zz, n: predict_from_neighbours(config, memory, zz, n, params))(
+            zs, nb)
+    pred = jax.tree_util.tree_map(lambda x: x[0], batch)
+    q_next, _ = greedy_value_from(config, memory, t.next_obs, batch.value[1:], batch.known[1:],
+                                  params)
     q_next = jnp.where(jnp.asarray(t.terminated, bool), 0.0, q_next)
     reward = jnp.asarray(t.reward, jnp.float32)
-    q_new = p.value + config.alpha * (reward + config.gamma * q_next - p.value)
+    q_new = pred.value + p.alpha * (reward + p.gamma * q_next - pred.value)
     # A non-finite next observation would look like "don't know" (no neighbours) and give a
     # finite target: refuse it instead, so the memory flags it (FLAG_NONFINITE).
     next_ok = jnp.all(jnp.isfinite(t.next_obs)) | jnp.asarray(t.terminated, bool)
     q_new = jnp.where(next_ok, q_new, jnp.nan)
-    if config.region_update:
-        memory = region_update(memory, p.indices, p.weights, p.mask, q_new, valid)
+    if p.region_update is not False:          # a constant False: not in the program at all
+        memory = region_update(memory, pred.indices, pred.weights, pred.mask, q_new,
+                               flag(p.region_update, valid, False))
     memory = add_scaled(config, memory, z, q_new, valid)
-    return memory, TrainInfo(p.value, q_next, q_new, p.known)
+    return memory, TrainInfo(pred.value, q_next, q_new, pred.known)
 
 
-def train_episode(config: HedgerConfig, memory: Memory, episode: Transition):
+def train_episode(config: HedgerConfig, memory: Memory, episode: Transition,
+                  params: Optional[HedgerParams] = None):
     """Reverse replay (Lin 1992): ``train_step`` over an episode newest-first.
 
     episode: ``Transition`` with leading axis T (padded steps have valid=False and change
@@ -112,6 +120,6 @@ def train_episode(config: HedgerConfig, memory: Memory, episode: Transition):
     """
 
     def body(mem, t):
-        return train_step(config, mem, t)
+        return train_step(config, mem, t, params=params)
 
     return jax.lax.scan(body, memory, episode, reverse=True)

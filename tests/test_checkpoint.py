@@ -215,7 +215,7 @@ def test_config_mismatch_is_refused_with_field_names(tmp_path):
     save_checkpoint(p, CFG, _memory(), RUN, env_id="HedgerMountainCar-v0")
     other = CFG.replace(bandwidth=0.02, alpha=0.5)
     with pytest.raises(CheckpointError, match=r"config mismatch in fields \['bandwidth', "
-                                              r"'k_thresh', 'alpha'\]") as e:
+                                              r"'k_thresh', 'alpha', 'max_bandwidth'\]") as e:
         load_checkpoint(p, config=other)
     assert "file 0.05 != expected 0.02" in str(e.value)
     with pytest.raises(CheckpointError, match=r"config mismatch in fields \['capacity'\]"):

@@ -74,7 +74,7 @@ def _search(cfg, mem):
 def _merger(cfg, width):
     return jax.jit(lambda m, zs, sets, size0, ok: cached_neighbours(
         cfg, m, zs, (sets, size0, ok, width),
-        jax.vmap(lambda z: select_neighbours(cfg, m, z))))
+        jax.vmap(lambda z: select_neighbours(cfg, m, z)), cfg.k_thresh))
 
 
 def _merged(cfg, mem, zs, sets, size0, ok, width):
@@ -188,7 +188,8 @@ def test_vmapped_memories_that_disagree_all_search():
     cached = _packed(_search(cfg, m0)(zs))
     want = _search(cfg, m1)(zs)
     fn = jax.jit(jax.vmap(lambda sets, ok: cached_neighbours(
-        cfg, m1, zs, (sets, m0.size, ok, 64), jax.vmap(lambda z: select_neighbours(cfg, m1, z)))))
+        cfg, m1, zs, (sets, m0.size, ok, 64), jax.vmap(lambda z: select_neighbours(cfg, m1, z)),
+        cfg.k_thresh)))
     got = fn(jnp.stack([jnp.asarray(cached), jnp.zeros_like(cached)]), jnp.asarray([True, False]))
     for i in range(2):
         _assert_same(jax.tree_util.tree_map(lambda x: x[i], got), want)

@@ -1,0 +1,198 @@
+"""HEDGER's numeric hyperparameters as traced values: ``HedgerParams``.
+
+``HedgerConfig`` holds what fixes shapes and loop lengths (static under ``jit``);
+``HedgerParams`` holds the numbers a sweep varies. Its leaves are arrays, so a grid of
+settings is one program::
+
+    params = HedgerParams.create(config, bandwidth=np.repeat([0.01, 0.02, 0.05], 8))
+    keys = jax.random.split(key, 24)
+    results = jax.jit(jax.vmap(make_train(env, config, run).train))(keys, params)
+
+Every function that takes ``params=None`` uses the config's values then (as compile-time
+constants: the same program as before params existed).
+"""
+from __future__ import annotations
+
+from typing import Any, NamedTuple, Optional
+
+import numpy as np
+
+from hedger_jax.config import HedgerConfig, StaticFieldError
+
+#: Fields of ``HedgerParams`` (in order), and the ``RunConfig`` fields among them.
+FIELDS = ("bandwidth", "min_weight", "k_thresh", "k_min", "alpha", "gamma", "default_value",
+          "ridge", "ivh_tol", "input_offset", "input_scale", "use_ivh", "region_update",
+          "epsilon", "noise_std")
+RUN_FIELDS = ("epsilon", "noise_std")
+_BOOLS = ("use_ivh", "region_update")
+_VECTORS = ("input_offset", "input_scale")
+
+
+class InvalidParamsError(ValueError):
+    """A ``HedgerParams`` value is out of its range or beyond what the static config allows."""
+
+
+class HedgerParams(NamedTuple):
+    """Traced settings (each a scalar, or a length-d vector for the input scaling; a sweep
+    gives every leaf the same leading batch axes).
+
+    bandwidth: Gaussian kernel width h. min_weight: the weight at the selection radius;
+    k_thresh: that radius, h sqrt(ln(1 / min_weight)) (derived by ``create``/``replace``).
+    k_min: fewest neighbours for a prediction (int32). alpha, gamma: Q-learning's step size
+    and discount. default_value: the "don't know" value. ridge, ivh_tol: numerics of the
+    fit and the hull test. input_offset, input_scale: (d,) the query scaling
+    z = (concat(s, a) - offset) * scale. use_ivh, region_update: the paper's ablation
+    switches (bool). epsilon, noise_std: exploration of the training runs.
+    """
+
+    bandwidth: Any
+    min_weight: Any
+    k_thresh: Any
+    k_min: Any
+    alpha: Any
+    gamma: Any
+    default_value: Any
+    ridge: Any
+    ivh_tol: Any
+    input_offset: Any
+    input_scale: Any
+    use_ivh: Any
+    region_update: Any
+    epsilon: Any
+    noise_std: Any
+
+    @classmethod
+    def defaults(cls, config: HedgerConfig, run: Any = None) -> "HedgerParams":
+        """The config's (and run config's) values as Python numbers: compile-time constants
+        inside a traced function. What every ``params=None`` means."""
+        values = {name: getattr(config, name) for name in FIELDS if name not in RUN_FIELDS}
+        values["epsilon"] = float(getattr(run, "epsilon", 0.2))
+        values["noise_std"] = float(getattr(run, "noise_std", 0.2))
+        return cls(**values)
+
+    @classmethod
+    def create(cls, config: HedgerConfig, run: Any = None, **values: Any) -> "HedgerParams":
+        """Params from the config's (and ``run``'s epsilon / noise_std) values, with some
+        replaced by ``values`` (numbers or arrays; arrays give a sweep: every leaf is
+        broadcast to their common batch shape). ``k_thresh`` follows bandwidth and
+        min_weight unless given. Checked on the host against the config
+        (``check_params``); the leaves are NumPy arrays (float32, int32 k_min, bool
+        switches)."""
+        unknown = sorted(set(values) - set(FIELDS))
+        if unknown:
+            static = [n for n in unknown if n in HedgerConfig.__dataclass_fields__]
+            if static:
+                raise StaticFieldError(
+                    f"{static[0]}: a static HedgerConfig field (it fixes shapes or loop "
+                    "lengths), not a HedgerParams field; sweep it with one program per value")
+            raise TypeError(f"HedgerParams.create: unknown fields {unknown}; known: {FIELDS}")
+        base = cls.defaults(config, run)._asdict()
+        if "k_thresh" not in values and ("bandwidth" in values or "min_weight" in values):
+            base.pop("k_thresh")                      # derived again below
+        base.update(values)
+        if "k_thresh" not in base:
+            h = np.asarray(base["bandwidth"], np.float64)
+            w = np.asarray(base["min_weight"], np.float64)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                base["k_thresh"] = h * np.sqrt(np.log(1.0 / w))
+        params = _as_arrays(config, base)
+        check_params(config, params)
+        return params
+
+    def replace(self, **values: Any) -> "HedgerParams":
+        """A copy with some fields changed; ``k_thresh`` is derived again when bandwidth or
+        min_weight changes (and is not given). Works on NumPy and traced leaves alike (no
+        host check: use ``check_params`` for that)."""
+        if "k_thresh" not in values and ("bandwidth" in values or "min_weight" in values):
+            import jax.numpy as jnp
+
+            h = values.get("bandwidth", self.bandwidth)
+            w = values.get("min_weight", self.min_weight)
+            values["k_thresh"] = jnp.asarray(h, jnp.float32) * jnp.sqrt(
+                jnp.log(1.0 / jnp.asarray(w, jnp.float32)))
+        return self._replace(**values)
+
+
+def _as_arrays(config: HedgerConfig, values: dict) -> HedgerParams:
+    """NumPy leaves of the canonical dtypes, broadcast to one batch shape."""
+    d = config.dim
+    out = {}
+    for name in FIELDS:
+        v = np.asarray(values[name])
+        if name in _VECTORS:
+            if v.shape[-1:] != (d,):
+                v = np.broadcast_to(v[..., None], v.shape + (d,)) if v.ndim == 0 or \
+                    v.shape[-1] != d else v
+            out[name] = v.astype(np.float32)
+        elif name in _BOOLS:
+            out[name] = v.astype(bool)
+        elif name == "k_min":
+            if np.any(np.asarray(v) != np.round(v)):
+                raise InvalidParamsError(f"k_min: must be an integer, got {v}")
+            out[name] = v.astype(np.int32)
+        else:
+            out[name] = v.astype(np.float32)
+    batch = np.broadcast_shapes(*[out[n].shape[:-1] if n in _VECTORS else out[n].shape
+                                  for n in FIELDS])
+    for name in FIELDS:
+        shape = batch + ((d,) if name in _VECTORS else ())
+        out[name] = np.broadcast_to(out[name], shape).copy()
+    return HedgerParams(**out)
+
+
+def _bad(name: str, values: np.ndarray, ok: np.ndarray, rule: str):
+    if not np.all(ok):
+        first = np.asarray(values)[~np.broadcast_to(ok, np.shape(values))].ravel()[0]
+        raise InvalidParamsError(f"{name}: {rule}, got {first!r}")
+
+
+def check_params(config: HedgerConfig, params: HedgerParams) -> HedgerParams:
+    """Host-side check of (concrete) params against their ranges and the static config:
+    finite values, 0 < min_weight < 1, alpha and gamma in [0, 1], k_min between the number
+    of regression parameters and ``max_neighbours``, a positive input scale, and a
+    selection radius ``k_thresh`` within the one the config's neighbour index is built
+    for (``HedgerConfig.max_bandwidth``). Raises ``InvalidParamsError`` naming the field.
+    Returns the params."""
+    p = {name: np.asarray(getattr(params, name)) for name in FIELDS}
+    for name in FIELDS:
+        if name not in _BOOLS:
+            _bad(name, p[name], np.isfinite(p[name]), "must be finite")
+    _bad("bandwidth", p["bandwidth"], p["bandwidth"] > 0, "must be > 0")
+    _bad("min_weight", p["min_weight"], (p["min_weight"] > 0) & (p["min_weight"] < 1),
+         "must be in (0, 1)")
+    _bad("k_thresh", p["k_thresh"], p["k_thresh"] > 0, "must be > 0")
+    for name in ("alpha", "gamma", "epsilon"):
+        _bad(name, p[name], (p[name] >= 0) & (p[name] <= 1), "must be in [0, 1]")
+    _bad("noise_std", p["noise_std"], p["noise_std"] >= 0, "must be >= 0")
+    _bad("ridge", p["ridge"], (p["ridge"] > 0) & (p["ridge"] < 1), "must be in (0, 1)")
+    _bad("ivh_tol", p["ivh_tol"], (p["ivh_tol"] >= 0) & (p["ivh_tol"] < 1), "must be in [0, 1)")
+    _bad("input_scale", p["input_scale"], p["input_scale"] > 0, "every entry must be > 0")
+    _bad("k_min", p["k_min"], (p["k_min"] >= config.dim + 1)
+         & (p["k_min"] <= config.max_neighbours),
+         f"must be in [dim + 1, max_neighbours] = [{config.dim + 1}, {config.max_neighbours}]")
+    limit = config.max_k_thresh * (1.0 + 1e-6)
+    if np.any(p["k_thresh"] > limit):
+        worst = float(np.max(p["k_thresh"]))
+        raise InvalidParamsError(
+            f"bandwidth: the selection radius k_thresh = {worst:.6g} (bandwidth x "
+            f"sqrt(ln(1 / min_weight))) exceeds the {config.max_k_thresh:.6g} the config's "
+            f"neighbour index is built for (HedgerConfig.max_bandwidth = "
+            f"{config.max_bandwidth}); raise max_bandwidth in the config")
+    return params
+
+
+def resolve(config: HedgerConfig, params: Optional[HedgerParams]) -> HedgerParams:
+    """``params``, or the config's defaults as constants when None (see the module doc)."""
+    return HedgerParams.defaults(config) if params is None else params
+
+
+def flag(value: Any, on: Any, off: Any):
+    """``on`` where the switch ``value`` holds, else ``off``: a Python branch for a constant
+    switch (the same program as a plain ``if``), a select for a traced one."""
+    if isinstance(value, (bool, np.bool_)):
+        return on if value else off
+    import jax.numpy as jnp
+
+    return jnp.where(value, on, off)
+
+
