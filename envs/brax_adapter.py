@@ -35,21 +35,46 @@ Resets: brax's ``AutoResetWrapper`` restores the *first* state cached at ``reset
 start every episode of a batch slot). The functional envs draw a fresh random start on every
 reset, so use ``ResamplingAutoResetWrapper`` (or ``wrap_for_training``), which calls the inner
 ``reset`` with a fresh key for the finished slots. ``BraxEnv.reset`` itself always re-samples.
+
+Brax's own agents: ``train_ppo(env, ...)`` and ``train_sac(env, ...)`` run
+``brax.training.agents.{ppo,sac}.train`` on a functional env with the wrappers above and
+``brax_compat()``: brax 0.14 calls ``jax.device_put_replicated``, which jax 0.10 removed; the
+context restores an equivalent (each device's copy stacked along a leading axis, what brax's
+``pmap`` expects) while brax runs, and removes it afterwards. Importing this module hides the
+"Failed to import warp" lines MuJoCo prints when its optional warp backend is absent.
 """
 from __future__ import annotations
 
+import contextlib
+import io
+import sys
 import warnings
-from typing import Any, Optional
+from typing import Any, Callable, Optional
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from brax.envs.base import Env, State, Wrapper
-from brax.envs.wrappers.training import EpisodeWrapper, VmapWrapper
 
-from envs.base import FunctionalEnv
 
-__all__ = ["BraxEnv", "ResamplingAutoResetWrapper", "wrap_for_training"]
+def _import_brax_quietly():
+    """brax imports MuJoCo's MJX, whose optional warp backend prints "Failed to import warp"
+    when absent; those lines are dropped, anything else printed is passed on."""
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        from brax.envs.base import Env, State, Wrapper
+        from brax.envs.wrappers.training import EpisodeWrapper, VmapWrapper
+    kept = [line for line in buf.getvalue().splitlines(keepends=True)
+            if not line.startswith(("Failed to import warp", "Failed to import mujoco_warp"))]
+    sys.stdout.write("".join(kept))
+    return Env, State, Wrapper, EpisodeWrapper, VmapWrapper
+
+
+Env, State, Wrapper, EpisodeWrapper, VmapWrapper = _import_brax_quietly()
+
+from envs.base import FunctionalEnv  # noqa: E402
+
+__all__ = ["BraxEnv", "ResamplingAutoResetWrapper", "wrap_for_training", "brax_compat",
+           "train_ppo", "train_sac"]
 
 
 class BraxEnv(Env):
@@ -199,15 +224,20 @@ class ResamplingAutoResetWrapper(Wrapper):
 
 
 def wrap_for_training(env: FunctionalEnv | BraxEnv | str, episode_length: Optional[int] = None,
-                      action_repeat: int = 1, **brax_env_kwargs) -> Wrapper:
+                      action_repeat: int = 1, randomization_fn: Optional[Callable] = None,
+                      **brax_env_kwargs) -> Wrapper:
     """Like ``brax.envs.wrappers.training.wrap`` but with real (re-sampled) resets.
 
     ``VmapWrapper`` -> ``EpisodeWrapper(episode_length, action_repeat)`` ->
     ``ResamplingAutoResetWrapper``. A functional env (or name) is wrapped in
     ``BraxEnv(time_limit=False)`` so that the time limit and ``info["truncation"]`` come from
     ``EpisodeWrapper`` alone; ``episode_length`` defaults to the env's ``max_steps``.
-    ``reset(rng)`` takes a batch of keys (B, 2).
+    ``reset(rng)`` takes a batch of keys (B, 2). Usable as brax's ``wrap_env_fn``
+    (``randomization_fn``, domain randomisation of MJX models, is refused: no such model).
     """
+    if randomization_fn is not None:
+        raise ValueError("wrap_for_training: randomization_fn is not supported (the "
+                         "functional envs have no MJX model to randomise)")
     if not isinstance(env, BraxEnv):
         brax_env_kwargs.setdefault("time_limit", False)
         env = BraxEnv(env, **brax_env_kwargs)
@@ -219,3 +249,63 @@ def wrap_for_training(env: FunctionalEnv | BraxEnv | str, episode_length: Option
     wrapped = VmapWrapper(env)
     wrapped = EpisodeWrapper(wrapped, episode_length, action_repeat)
     return ResamplingAutoResetWrapper(wrapped)
+
+
+def _device_put_replicated(x: Any, devices) -> Any:
+    """``jax.device_put_replicated`` as jax < 0.10 had it: every leaf stacked once per device
+    along a new leading axis, one slice on each device (what brax's ``pmap`` takes)."""
+    devices = list(devices)
+    mesh = jax.sharding.Mesh(np.asarray(devices, dtype=object), ("d",))
+    sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("d"))
+    return jax.tree_util.tree_map(
+        lambda leaf: jax.device_put(jnp.stack([jnp.asarray(leaf)] * len(devices)), sharding), x)
+
+
+@contextlib.contextmanager
+def brax_compat():
+    """Run brax's training code on this jax: while the context is open,
+    ``jax.device_put_replicated`` (removed in jax 0.10, called by brax 0.14's agents) is
+    provided by ``_device_put_replicated``; on exit the jax module is as it was. A no-op
+    where jax still has it."""
+    try:
+        jax.device_put_replicated  # noqa: B018
+        missing = False
+    except AttributeError:
+        missing = True
+    if missing:
+        jax.device_put_replicated = _device_put_replicated
+    try:
+        yield
+    finally:
+        if missing:
+            del jax.device_put_replicated
+
+
+def _train(agent: str, env: Any, env_kwargs: Optional[dict], **kwargs):
+    import importlib
+
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        train_fn = importlib.import_module(f"brax.training.agents.{agent}.train").train
+    sys.stdout.write("".join(line for line in buf.getvalue().splitlines(keepends=True)
+                             if not line.startswith("Failed to import")))
+    brax_env = env if isinstance(env, BraxEnv) else BraxEnv(env, time_limit=False,
+                                                            **(env_kwargs or {}))
+    kwargs.setdefault("episode_length", brax_env.max_steps)
+    kwargs.setdefault("wrap_env_fn", wrap_for_training)
+    with brax_compat():
+        return train_fn(environment=brax_env, **kwargs)
+
+
+def train_ppo(env: Any, *, env_kwargs: Optional[dict] = None, **kwargs):
+    """brax's PPO (``brax.training.agents.ppo.train.train``) on a functional env (or name, or
+    ``BraxEnv``): the env behind ``BraxEnv(time_limit=False)`` and ``wrap_for_training``
+    (real re-sampled resets), ``episode_length`` the env's ``max_steps`` unless given, inside
+    ``brax_compat``. kwargs go to brax's ``train``. Returns what it returns
+    (make_policy, params, metrics)."""
+    return _train("ppo", env, env_kwargs, **kwargs)
+
+
+def train_sac(env: Any, *, env_kwargs: Optional[dict] = None, **kwargs):
+    """brax's SAC (``brax.training.agents.sac.train.train``) as ``train_ppo`` runs PPO."""
+    return _train("sac", env, env_kwargs, **kwargs)

@@ -19,9 +19,11 @@ from typing import Dict, List, Optional
 
 
 from hedger_jax import cpu
-from experiments.figures import FIGURES, build_figure
+from experiments.figures import FIGURES, PAPER, build_figure
 from experiments.plotting import plot_figure
-from experiments.runner import atomic_write_bytes, atomic_write_json, run_variant, versions
+from experiments.figures import Variant
+from experiments.runner import (atomic_write_bytes, atomic_write_json, run_sweep,
+                                static_part, versions)
 from experiments.summary import figure_summary, reference_values
 
 
@@ -58,6 +60,19 @@ def select_variants(figure, only: Optional[List[str]] = None,
     return dataclasses.replace(figure, variants=variants, optional=(), x_label=x_label)
 
 
+def output_problem(path: str) -> Optional[str]:
+    """Why ``path`` cannot be the output directory (None if it can): created if missing."""
+    if os.path.exists(path) and not os.path.isdir(path):
+        return f"{path!r} exists and is not a directory"
+    try:
+        os.makedirs(path, exist_ok=True)
+    except OSError as err:
+        return f"cannot create {path!r}: {err.strerror}"
+    if not os.access(path, os.W_OK | os.X_OK):
+        return f"{path!r} is not writable"
+    return None
+
+
 def run_figure(name: str, mode: str, seeds: List[int], out: str, seed_batch: int,
                base_seed: int, only: Optional[List[str]] = None,
                eval_episodes: Optional[int] = None, seed_mode: str = "vmap",
@@ -65,24 +80,37 @@ def run_figure(name: str, mode: str, seeds: List[int], out: str, seed_batch: int
     figure = select_variants(build_figure(name, mode), only, eval_episodes)
     print(f"{figure.title} [{mode}, {len(seeds)} seeds]")
     t0 = time.time()
-    records = [run_variant(v, seeds, out, base_seed=base_seed, seed_batch=seed_batch,
-                           seed_mode=seed_mode, devices=devices)
-               for v in figure.variants]
+    # Variants that differ only in traced settings (an ablation's on and off) run as one
+    # program; a group's batch holds seed_batch seeds of each of its variants.
+    groups: Dict[Variant, List[int]] = {}
+    for i, v in enumerate(figure.variants):
+        groups.setdefault(static_part(v), []).append(i)
+    records: List[Dict] = [{}] * len(figure.variants)
+    for idx in groups.values():
+        recs = run_sweep([figure.variants[i] for i in idx], seeds, out, base_seed=base_seed,
+                         seed_batch=seed_batch * len(idx), seed_mode=seed_mode, devices=devices)
+        for i, rec in zip(idx, recs):
+            records[i] = rec
     refs = reference_values(figure, records)
+    paper = {label: PAPER[key] for label, key in figure.paper}
     data = {"figure": name, "title": figure.title, "mode": mode, "x_label": figure.x_label,
-            "reference": refs, "versions": versions(), "variants": records,
-            "wall_seconds": time.time() - t0}
+            "reference": refs, "paper": paper, "versions": versions(), "variants": records,
+            "wall_seconds": time.time() - t0,
+            "compute_seconds": sum(r.get("compute_seconds", 0.0) for r in records)}
     atomic_write_json(os.path.join(out, f"{name}.json"), data)
     atomic_write_bytes(os.path.join(out, f"{name}.csv"), _csv(records))
-    plot_figure(os.path.join(out, f"{name}.png"), figure.title, figure.x_label, records, refs)
-    print(f"  wrote {os.path.join(out, name)}.{{json,csv,png}} ({time.time() - t0:.0f} s)")
+    plot_figure(os.path.join(out, f"{name}.png"), figure.title, figure.x_label, records, refs,
+                paper)
+    print(f"  wrote {os.path.join(out, name)}.{{json,csv,png}} ({time.time() - t0:.0f} s; "
+          f"computing the results took {data['compute_seconds']:.0f} s)")
     return data
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m experiments", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("figure", choices=list(FIGURES) + ["all"])
+    parser.add_argument("figure", choices=list(FIGURES) + ["all"],
+                        help="the paper's figure to reproduce, or all of them")
     mode = parser.add_mutually_exclusive_group()
     mode.add_argument("--quick", dest="mode", action="store_const", const="quick",
                       help="short runs (default): minutes on 2 CPU cores")
@@ -90,23 +118,22 @@ def main(argv=None) -> int:
                       help="the paper's lengths and 2500-episode evaluations")
     parser.add_argument("--seeds", type=int, default=5, help="number of seeds (default 5)")
     parser.add_argument("--seed-batch", type=int, default=8,
-                        help="seeds run in one computation (default 8); with --seed-mode vmap "
-                             "on a 2-core CPU 1 is ~1.8x faster, e.g. Figure 1 quick discrete "
-                             "98 s vs 176 s, with statistically equivalent, not bit-identical "
-                             "results")
+                        help="seeds of each variant run in one computation (default 8); "
+                             "variants that differ only in traced settings share it")
     parser.add_argument("--seed-mode", choices=["auto", "vmap", "map"], default="auto",
-                        help="how a seed batch runs: vmapped together, or one after another in "
-                             "one program (map; each seed then runs the one-seed program); "
-                             "auto (default): map on CPU, vmap on an accelerator. On a 2-core "
-                             "CPU map ran Figure 1 quick discrete in 86 s instead of 190 s")
+                        help="how a batch runs: vmapped together, or one after another in one "
+                             "program (map: each seed then runs the one-seed program); "
+                             "default auto: map on a CPU, vmap on an accelerator")
     parser.add_argument("--devices", default="cores", metavar="N|cores",
                         help="split each seed batch over N devices; 'cores' (default): on a "
                              "CPU-only machine one host device per core, up to the seed batch "
                              "(JAX's forced host device count, set here before JAX starts), "
                              "else all devices. With --seed-mode map a seed's numbers do not "
                              "depend on it")
-    parser.add_argument("--base-seed", type=int, default=0)
-    parser.add_argument("--out", default="results", help="output directory (default results/)")
+    parser.add_argument("--base-seed", type=int, default=0,
+                        help="seed i runs with fold_in(PRNGKey(base), i) (default 0)")
+    parser.add_argument("--out", default="results",
+                        help="output directory, created if needed (default results/)")
     parser.add_argument("--variant", action="append", default=None, metavar="TEXT",
                         help="run only the variants whose label contains TEXT (repeatable); "
                              "also selects optional variants (fig2 --quick: 'continuous')")
@@ -137,7 +164,9 @@ def main(argv=None) -> int:
         if devices < 1:
             parser.error("--devices must be a number >= 1 or 'cores'")
         cpu.configure()
-    os.makedirs(args.out, exist_ok=True)
+    problem = output_problem(args.out)
+    if problem:
+        parser.error(f"--out: {problem}")
     names = list(FIGURES) if args.figure == "all" else [args.figure]
     seeds = list(range(args.seeds))
     # Summaries of figures run earlier into the same directory are kept in summary.md.
@@ -147,10 +176,14 @@ def main(argv=None) -> int:
         if existing not in names and os.path.exists(path):
             with open(path) as f:
                 summaries[existing] = figure_summary(json.load(f))
-    for name in names:
-        data = run_figure(name, mode_name, seeds, args.out, args.seed_batch, args.base_seed,
-                          args.variant, args.eval_episodes, args.seed_mode, devices)
-        summaries[name] = figure_summary(data)
+    try:
+        for name in names:
+            data = run_figure(name, mode_name, seeds, args.out, args.seed_batch, args.base_seed,
+                              args.variant, args.eval_episodes, args.seed_mode, devices)
+            summaries[name] = figure_summary(data)
+    except KeyboardInterrupt:
+        print("\ninterrupted — rerun the same command to resume", file=sys.stderr)
+        return 130
     text = "# hedger-jax: reproduction summary\n\n" + "\n".join(
         summaries[n] for n in FIGURES if n in summaries)
     atomic_write_bytes(os.path.join(args.out, "summary.md"), text.encode())

@@ -55,6 +55,8 @@ class Variant:
     in control for ``phase1_episodes`` runs). x_axis: "points" or "episodes".
     state_scale_factors: multipliers on the [0, 1] state scaling, per state dimension.
     env_params: overrides of the environment's default params (name, value) pairs.
+    params: ``HedgerParams`` overrides (name, value) pairs: traced settings, so variants that
+    differ only here run as one program (``experiments.runner.run_sweep``).
     """
 
     label: str
@@ -66,6 +68,7 @@ class Variant:
     x_axis: str = "episodes"
     state_scale_factors: Optional[Tuple[float, ...]] = None
     env_params: Tuple[Tuple[str, Any], ...] = ()
+    params: Tuple[Tuple[str, Any], ...] = ()
 
     def hedger_kwargs(self) -> Dict[str, Any]:
         return dict(self.hedger)
@@ -78,6 +81,8 @@ class Figure:
     variants: Tuple[Variant, ...]
     x_label: str
     reference: Tuple[Tuple[str, str], ...] = ()  # (label, key into reference values)
+    #: The paper's reported result(s) for this figure: (label, key into ``PAPER``).
+    paper: Tuple[Tuple[str, str], ...] = ()
     #: Variants run only when named with ``--variant`` (too slow for the mode's default).
     optional: Tuple[Variant, ...] = ()
 
@@ -86,7 +91,8 @@ def _items(d: Dict[str, Any], **extra: Any) -> Tuple[Tuple[str, Any], ...]:
     return tuple(sorted(dict(d, **extra).items()))
 
 
-def _mc_random_starts(mode: str, label: str, continuous: bool, **hedger_extra: Any) -> Variant:
+def _mc_random_starts(mode: str, label: str, continuous: bool,
+                      params: Optional[Dict[str, Any]] = None, **hedger_extra: Any) -> Variant:
     full = mode == "full"
     base = MOUNTAIN_CAR_CONTINUOUS if continuous else MOUNTAIN_CAR
     n_blocks = 30 if full else 6
@@ -97,10 +103,12 @@ def _mc_random_starts(mode: str, label: str, continuous: bool, **hedger_extra: A
         run=RunConfig(n_blocks=n_blocks, episodes_per_block=None, points_per_block=10_000,
                       eval_episodes=2500 if full else 300),
         x_axis="points",
+        params=_items(params or {}),
     )
 
 
-def _mc_demos(mode: str, label: str, continuous: bool, **hedger_extra: Any) -> Variant:
+def _mc_demos(mode: str, label: str, continuous: bool, params: Optional[Dict[str, Any]] = None,
+              **hedger_extra: Any) -> Variant:
     full = mode == "full"
     base = MOUNTAIN_CAR_CONTINUOUS if continuous else MOUNTAIN_CAR
     return Variant(
@@ -111,6 +119,7 @@ def _mc_demos(mode: str, label: str, continuous: bool, **hedger_extra: Any) -> V
                       eval_episodes=2500 if full else 200),
         phase1="simulated_person",
         x_axis="episodes",
+        params=_items(params or {}),
     )
 
 
@@ -125,14 +134,14 @@ def _ablation(name: str, title: str, mode: str, off_label: str, off: Dict[str, A
     "on" lines are Figure 2's runs (cached results are shared: the label is not part of the
     cache key)."""
     demos = (_mc_demos(mode, "discrete + demos", False),
-             _mc_demos(mode, f"discrete + demos, {off_label}", False, **off),
+             _mc_demos(mode, f"discrete + demos, {off_label}", False, off),
              _mc_demos(mode, "continuous + demos", True),
-             _mc_demos(mode, f"continuous + demos, {off_label}", True, **off))
+             _mc_demos(mode, f"continuous + demos, {off_label}", True, off))
     return Figure(name, title,
                   (_mc_random_starts(mode, "discrete", False),
-                   _mc_random_starts(mode, f"discrete, {off_label}", False, **off),
+                   _mc_random_starts(mode, f"discrete, {off_label}", False, off),
                    _mc_random_starts(mode, "continuous", True),
-                   _mc_random_starts(mode, f"continuous, {off_label}", True, **off)),
+                   _mc_random_starts(mode, f"continuous, {off_label}", True, off)),
                   "training points", reference, optional=demos)
 
 
@@ -147,7 +156,8 @@ def build_figure(name: str, mode: str = "quick") -> Figure:
                        _mc_random_starts(mode, "continuous", True)),
                       "training points",
                       (("tabular Q-learning", "tabular_q_paper_reward"), ("optimal (grid DP)", "optimal_dp"),
-                       ("random policy", "random")))
+                       ("random policy", "random")),
+                      paper=(("paper: HEDGER after ~300,000 points", "fig1_converged"),))
     if name == "fig2":
         variants = [_mc_demos(mode, "discrete", False)]
         continuous = (_mc_demos(mode, "continuous", True),)
@@ -158,7 +168,8 @@ def build_figure(name: str, mode: str = "quick") -> Figure:
                       (("demonstrators' mean", "demonstrators_mean"),
                        ("tabular Q-learning", "tabular_q_paper_reward"),
                        ("optimal (grid DP)", "optimal_dp")),
-                      optional=() if full else continuous)
+                      optional=() if full else continuous,
+                      paper=(("paper: HEDGER after 200 runs", "fig2_after_200_runs"),))
     if name == "fig3":
         return _ablation("fig3", "Figure 3: HEDGER without the IVH check (mountain car)", mode,
                          "IVH off", dict(use_ivh=False),

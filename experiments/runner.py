@@ -18,6 +18,7 @@ import functools
 import hashlib
 import json
 import os
+import time
 from typing import Any, Callable, Dict, List, Optional
 
 import jax
@@ -30,6 +31,7 @@ from hedger_jax.config import HedgerConfig
 from hedger_jax.cpu import jit as _jit
 from hedger_jax.files import atomic_write
 from hedger_jax.memory import memory_check
+from hedger_jax.params import HedgerParams
 
 from experiments.figures import Variant
 
@@ -57,12 +59,13 @@ def variant_key(variant: Variant, seeds: List[int], base_seed: int) -> str:
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
-def build_variant(variant: Variant):
-    """(env, HedgerConfig, Train, phase1 description) for a variant."""
+def build_variant(variant: Variant, config: Optional[HedgerConfig] = None):
+    """(env, HedgerConfig, Train, phase1 description) for a variant (``config``: instead of
+    the variant's own, e.g. a group's, ``group_config``)."""
     import envs
 
     env = envs.make(variant.env)
-    config = config_of(variant)
+    config = config_of(variant) if config is None else config
     env_params = env_params_of(env, variant)
     phase1 = None
     info: Dict[str, Any] = {}
@@ -97,16 +100,45 @@ def resolve_seed_mode(seed_mode: str) -> str:
     return seed_mode
 
 
+def static_part(variant: Variant) -> Variant:
+    """The variant without its label and its traced settings: what fixes the program. Variants
+    with equal static parts run as one program (a sweep over their ``params``)."""
+    return dataclasses.replace(variant, label="", params=())
+
+
+def group_config(variants: List[Variant]) -> HedgerConfig:
+    """The static config of a group of variants sharing a static part: theirs, with
+    ``max_bandwidth`` raised to the largest bandwidth any of them uses."""
+    config = config_of(variants[0])
+    widest = max([config.bandwidth] + [float(dict(v.params).get("bandwidth", 0.0))
+                                       for v in variants])
+    return config.replace(max_bandwidth=max(widest, config.max_bandwidth))
+
+
+def params_of(variant: Variant, config: HedgerConfig) -> HedgerParams:
+    """The traced settings of a variant: the config's values with the variant's ``params``
+    overrides (``action_scale`` scales the config's action input scale)."""
+    overrides = dict(variant.params)
+    if "action_scale" in overrides:
+        factor = float(overrides.pop("action_scale"))
+        scale = np.asarray(config.input_scale, np.float64)
+        scale[config.state_dim:] *= factor / dict(variant.hedger).get("action_scale", 1.0)
+        overrides["input_scale"] = scale
+    return HedgerParams.create(config, variant.run, **overrides)
+
+
 @functools.lru_cache(maxsize=32)
-def compiled_variant(variant: Variant, seed_mode: str = "vmap", n_devices: int = 1):
-    """(init, run_block donating its state, phase-1 info) over a batch of seeds, cached per
-    variant and mode so that repeated and resumed runs in one process compile once per batch
-    size. seed_mode "vmap": ``jit(vmap(...))``; "map": ``jit(lax.map(...))``, the batch's
-    seeds one after another in one program (on a CPU each then runs at the one-seed rate;
-    vmapped seeds share the batched kernels and wait for the longest episode). With
-    ``n_devices`` > 1 the batch's seeds are split over the first ``n_devices`` devices
-    (``hedger_jax.sharding.per_device``): batches must then be a multiple of it long."""
-    _, config, train, info = build_variant(variant)
+def compiled_group(static: Variant, config: HedgerConfig, seed_mode: str = "vmap",
+                   n_devices: int = 1):
+    """(init, run_block donating its state, phase-1 info) over a batch of members (a seed
+    and its settings each: ``init(keys, params)``, ``run_block(state, params)``), cached per
+    static part, config and mode so that repeated and resumed runs in one process compile
+    once per batch size. seed_mode "vmap": ``jit(vmap(...))``; "map": ``jit(lax.map(...))``,
+    the batch's members one after another in one program (on a CPU each then runs at the
+    one-seed rate; vmapped members share the batched kernels and wait for the longest
+    episode). With ``n_devices`` > 1 the members are split over the first ``n_devices``
+    devices (``hedger_jax.sharding.per_device``): batches must then be a multiple of it."""
+    _, _, train, info = build_variant(static, config)
     if seed_mode not in ("map", "vmap"):
         raise ValueError(f"seed_mode: expected 'vmap' or 'map', got {seed_mode!r}")
     if n_devices > 1:
@@ -120,8 +152,11 @@ def compiled_variant(variant: Variant, seed_mode: str = "vmap", n_devices: int =
     else:
         shard = {}
         if seed_mode == "map":
-            batched_init = functools.partial(jax.lax.map, train.init)
-            batched_block = functools.partial(jax.lax.map, train.run_block)
+            def batched_init(keys, params):
+                return jax.lax.map(lambda a: train.init(*a), (keys, params))
+
+            def batched_block(state, params):
+                return jax.lax.map(lambda a: train.run_block(*a), (state, params))
         else:
             batched_init, batched_block = jax.vmap(train.init), jax.vmap(train.run_block)
     init = _jit(batched_init, **shard)
@@ -189,111 +224,177 @@ def _load_checkpoint(path: str, state_like, result_like, key: str):
     return state, results, int(meta["block"])
 
 
-def run_variant(variant: Variant, seeds: List[int], out_dir: str, *, base_seed: int = 0,
-                seed_batch: int = 8, progress: bool = True,
-                on_block: Optional[Callable[[int], None]] = None,
-                seed_mode: str = "vmap", devices: Optional[int] = 1) -> Dict[str, Any]:
-    """Run (or resume, or load) one variant over ``seeds``. Returns its result record.
-
-    ``seed_mode``: how a batch's seeds run ("vmap" | "map" | "auto", ``compiled_variant``).
-    Results agree statistically between modes and batch sizes, not bit for bit, and the
-    result cache does not tell them apart (as for ``seed_batch``). ``devices``: split each
-    batch over this many devices (None: all; a batch is padded to a multiple of them by
-    repeating its last seed, whose copies are dropped from the results). With "map" a seed's
-    numbers do not depend on the device or the batch.
-
-    The record holds, per evaluation (block 0 = after phase 1): ``points`` and ``episodes``
-    (seeds, blocks+1) and ``mean_steps``/``success_rate`` (seeds, blocks+1).
-    """
-    key = variant_key(variant, seeds, base_seed)
-    cache_dir = os.path.join(out_dir, "cache")
-    result_path = os.path.join(cache_dir, f"{key}.json")
-    if os.path.exists(result_path):
-        with open(result_path) as f:
+def _cached(path: str) -> Optional[Dict[str, Any]]:
+    if os.path.exists(path):
+        with open(path) as f:
             record = json.load(f)
         if record.get("complete"):
-            if progress:
-                print(f"  {variant.label}: cached result {result_path}")
-            # The cache is shared between figures that name the same run differently.
-            return dict(record, label=variant.label)
+            return record
+    return None
 
+
+def run_variant(variant: Variant, seeds: List[int], out_dir: str, **kwargs) -> Dict[str, Any]:
+    """Run (or resume, or load) one variant over ``seeds``: ``run_sweep`` of one."""
+    return run_sweep([variant], seeds, out_dir, **kwargs)[0]
+
+
+def run_sweep(variants: List[Variant], seeds: List[int], out_dir: str, *, base_seed: int = 0,
+              seed_batch: Optional[int] = 8, progress: bool = True,
+              on_block: Optional[Callable[[int], None]] = None,
+              seed_mode: str = "vmap", devices: Optional[int] = 1,
+              label: Optional[str] = None) -> List[Dict[str, Any]]:
+    """Run (or resume, or load) variants that share a static part (``static_part``) over
+    ``seeds``, as ONE compiled program: each batch holds (variant, seed) members, each with
+    its own ``HedgerParams``. Returns one result record per variant, in order.
+
+    ``seed_batch``: members per program call (None: all of them at once). ``seed_mode``:
+    how a batch's members run ("vmap" | "map" | "auto", ``compiled_group``). Results agree
+    statistically between modes and batch sizes, not bit for bit, and the result cache does
+    not tell them apart. ``devices``: split each batch over this many devices (None: all; a
+    batch is padded to a multiple of them by repeating its last member, whose copies are
+    dropped). With "map" a member's numbers do not depend on the device or the batch.
+
+    A record holds, per evaluation (block 0 = after phase 1): ``points`` and ``episodes``
+    (seeds, blocks+1) and ``mean_steps``/``success_rate`` (seeds, blocks+1). Each variant's
+    finished record is cached under its own key (``variant_key``), shared between figures;
+    batches checkpoint after every block and resume.
+    """
+    statics = {static_part(v) for v in variants}
+    if len(statics) != 1:
+        raise ValueError("run_sweep: the variants differ in more than their params; run "
+                         "them separately")
+    cache_dir = os.path.join(out_dir, "cache")
+    paths = [os.path.join(cache_dir, f"{variant_key(v, seeds, base_seed)}.json")
+             for v in variants]
+    records: List[Optional[Dict[str, Any]]] = [_cached(p) for p in paths]
+    todo = [i for i, r in enumerate(records) if r is None]
+    for i, rec in enumerate(records):
+        if rec is not None and progress:
+            print(f"  {variants[i].label}: cached result {paths[i]}")
+    if todo:
+        t0 = time.time()
+        arrays = _run_members([variants[i] for i in todo], seeds, cache_dir, base_seed,
+                              seed_batch, progress, on_block, seed_mode, devices, label)
+        share = (time.time() - t0) / len(todo)    # the sweep's wall time, shared evenly
+        config = group_config(variants)
+        for j, i in enumerate(todo):
+            v = variants[i]
+            record = {
+                "label": v.label, "env": v.env, "x_axis": v.x_axis,
+                "seeds": seeds, "base_seed": base_seed, "phase1": v.phase1,
+                "phase1_info": arrays["info"],
+                "hedger_config": dataclasses.asdict(config),
+                "params": {k: _jsonable(x) for k, x in params_of(v, config)._asdict().items()},
+                "env_params": dict(v.env_params),
+                "run_config": dataclasses.asdict(v.run),
+                "versions": versions(), "complete": True, "compute_seconds": share,
+                **{k: a[j].tolist() for k, a in arrays["per_variant"].items()},
+            }
+            atomic_write_json(paths[i], record)
+            records[i] = record
+    return [dict(r, label=v.label) for r, v in zip(records, variants)]
+
+
+def _jsonable(x):
+    a = np.asarray(x)
+    return a.item() if a.ndim == 0 else a.tolist()
+
+
+def _run_members(variants: List[Variant], seeds: List[int], cache_dir: str, base_seed: int,
+                 seed_batch: Optional[int], progress: bool,
+                 on_block: Optional[Callable[[int], None]], seed_mode: str,
+                 devices: Optional[int], label: Optional[str]) -> Dict[str, Any]:
+    """Run every (variant, seed) member in batches of one program; -> {"info": phase-1 info,
+    "per_variant": {field: array (variants, seeds, blocks + 1)}}."""
+    config = group_config(variants)
     n_dev = usable_devices(devices)
-    init, run_block, info = compiled_variant(variant, resolve_seed_mode(seed_mode), n_dev)
-    n_blocks = variant.run.n_blocks
-    batches = [seeds[i:i + seed_batch] for i in range(0, len(seeds), seed_batch)]
-    per_batch: List[Dict[str, np.ndarray]] = []
+    init, run_block, info = compiled_group(static_part(variants[0]), config,
+                                           resolve_seed_mode(seed_mode), n_dev)
+    all_params = [params_of(v, config) for v in variants]
+    members = [(i, s) for i in range(len(variants)) for s in seeds]
+    size = len(members) if seed_batch is None else int(seed_batch)
+    batches = [members[i:i + size] for i in range(0, len(members), size)]
+    n_blocks = variants[0].run.n_blocks
     bar = None
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=len(batches) * (n_blocks + 1), desc=f"  {variant.label}",
-                   unit="eval", leave=True)
-    for b, batch in enumerate(batches):
-        batch_key = variant_key(variant, batch, base_seed)
+        desc = label or (variants[0].label if len(variants) == 1 else
+                         f"{len(variants)} settings")
+        bar = tqdm(total=len(batches) * (n_blocks + 1), desc=f"  {desc}", unit="eval",
+                   leave=True)
+    fields = ("points", "episodes", "mean_steps", "success_rate", "train_steps_mean",
+              "memory_size")
+    out = {f: {} for f in fields}
+    for batch in batches:
+        batch_key = hashlib.sha256(json.dumps(
+            [variant_key(variants[i], [s], base_seed) for i, s in batch]).encode()
+        ).hexdigest()[:16]
         batch_path = os.path.join(cache_dir, f"batch-{batch_key}.json")
         if os.path.exists(batch_path):
             with open(batch_path) as f:
-                per_batch.append({k: np.asarray(v) for k, v in json.load(f).items()})
+                arrays = {k: np.asarray(v) for k, v in json.load(f).items()}
             if bar is not None:
                 bar.update(n_blocks + 1)
-            continue
-        ckpt_path = os.path.join(cache_dir, f"ckpt-{batch_key}.npz")
-        padded = batch + [batch[-1]] * ((-len(batch)) % n_dev)
-        keys = jnp.stack([jax.random.fold_in(jax.random.PRNGKey(base_seed), s) for s in padded])
-        state_like, first_like = jax.eval_shape(init, keys)
-        resumed = _load_checkpoint(ckpt_path, state_like, first_like, batch_key)
-        if resumed is None:
-            state, first = init(keys)
-            memory_check(state.memory)
-            results = [first]
-            done = 0
-            _save_checkpoint(ckpt_path, state, results, done, batch_key)
         else:
-            state, results, done = resumed
-            if n_dev > 1:   # the checkpoint's arrays, split over the devices as run_block wants
-                state = jax.device_put(state, jax.sharding.NamedSharding(
-                    jax.sharding.Mesh(np.asarray(jax.devices()[:n_dev], dtype=object),
-                                      ("seeds",)), jax.sharding.PartitionSpec("seeds")))
-        if bar is not None:
-            bar.update(done + 1)
-        for blk in range(done, n_blocks):
-            state, res = run_block(state)
-            memory_check(state.memory)
-            results.append(res)
-            _save_checkpoint(ckpt_path, state, results, blk + 1, batch_key)
-            if bar is not None:
-                steps = np.asarray(res.evaluation.mean_steps)[:len(batch)]
-                bar.set_postfix(steps=f"{float(np.mean(steps)):.1f}")
-                bar.update(1)
-            if on_block is not None:
-                on_block(blk + 1)
-        stacked = jax.tree_util.tree_map(
-            lambda *xs: np.stack([np.asarray(x)[:len(batch)] for x in xs], 1), *results)
-        arrays = {
-            "points": stacked.points, "episodes": stacked.episodes,
-            "mean_steps": stacked.evaluation.mean_steps,
-            "success_rate": stacked.evaluation.success_rate,
-            "train_steps_mean": stacked.train_steps_mean,
-            "memory_size": stacked.memory_size,
-        }
-        atomic_write_json(batch_path, {k: np.asarray(v).tolist() for k, v in arrays.items()})
-        per_batch.append(arrays)
-        if os.path.exists(ckpt_path):
-            os.unlink(ckpt_path)
+            arrays = _run_batch(batch, all_params, base_seed, n_dev, init, run_block,
+                                n_blocks, cache_dir, batch_key, bar, on_block)
+            atomic_write_json(batch_path, {k: np.asarray(v).tolist() for k, v in arrays.items()})
+        for j, member in enumerate(batch):
+            for f in fields:
+                out[f][member] = np.asarray(arrays[f])[j]
     if bar is not None:
         bar.close()
-    merged = {k: np.concatenate([np.asarray(p[k]) for p in per_batch], 0).tolist()
-              for k in per_batch[0]}
-    record = {
-        "label": variant.label, "env": variant.env, "x_axis": variant.x_axis,
-        "seeds": seeds, "base_seed": base_seed, "phase1": variant.phase1, "phase1_info": info,
-        "hedger_config": dataclasses.asdict(config_of(variant)),
-        "env_params": dict(variant.env_params),
-        "run_config": dataclasses.asdict(variant.run),
-        "versions": versions(), "complete": True, **merged,
-    }
-    atomic_write_json(result_path, record)
-    return record
+    per_variant = {f: np.stack([np.stack([out[f][(i, s)] for s in seeds])
+                                for i in range(len(variants))]) for f in fields}
+    return {"info": info, "per_variant": per_variant}
+
+
+def _run_batch(batch, all_params, base_seed, n_dev, init, run_block, n_blocks, cache_dir,
+               batch_key, bar, on_block) -> Dict[str, np.ndarray]:
+    """One batch of members through init and every block, checkpointed after each block."""
+    ckpt_path = os.path.join(cache_dir, f"ckpt-{batch_key}.npz")
+    padded = batch + [batch[-1]] * ((-len(batch)) % n_dev)
+    keys = jnp.stack([jax.random.fold_in(jax.random.PRNGKey(base_seed), s) for _, s in padded])
+    params = jax.tree_util.tree_map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]),
+                                    *[all_params[i] for i, _ in padded])
+    state_like, first_like = jax.eval_shape(init, keys, params)
+    resumed = _load_checkpoint(ckpt_path, state_like, first_like, batch_key)
+    if resumed is None:
+        state, first = init(keys, params)
+        memory_check(state.memory)
+        results = [first]
+        done = 0
+        _save_checkpoint(ckpt_path, state, results, done, batch_key)
+    else:
+        state, results, done = resumed
+        if n_dev > 1:   # the checkpoint's arrays, split over the devices as run_block wants
+            state = jax.device_put(state, jax.sharding.NamedSharding(
+                jax.sharding.Mesh(np.asarray(jax.devices()[:n_dev], dtype=object),
+                                  ("seeds",)), jax.sharding.PartitionSpec("seeds")))
+    if bar is not None:
+        bar.update(done + 1)
+    for blk in range(done, n_blocks):
+        state, res = run_block(state, params)
+        memory_check(state.memory)
+        results.append(res)
+        _save_checkpoint(ckpt_path, state, results, blk + 1, batch_key)
+        if bar is not None:
+            steps = np.asarray(res.evaluation.mean_steps)[:len(batch)]
+            bar.set_postfix(steps=f"{float(np.mean(steps)):.1f}")
+            bar.update(1)
+        if on_block is not None:
+            on_block(blk + 1)
+    stacked = jax.tree_util.tree_map(
+        lambda *xs: np.stack([np.asarray(x)[:len(batch)] for x in xs], 1), *results)
+    arrays = {"points": stacked.points, "episodes": stacked.episodes,
+              "mean_steps": stacked.evaluation.mean_steps,
+              "success_rate": stacked.evaluation.success_rate,
+              "train_steps_mean": stacked.train_steps_mean,
+              "memory_size": stacked.memory_size}
+    if os.path.exists(ckpt_path):
+        os.unlink(ckpt_path)
+    return arrays
 
 
 def config_of(variant: Variant) -> HedgerConfig:

@@ -266,7 +266,9 @@ def test_ablation_demo_variants_share_figure2_cache_key():
     assert [v.label for v in fig4.variants] == ["continuous + demos",
                                                 "continuous + demos, no region update"]
     assert fig4.x_label == "phase-two training runs"
-    assert dict(fig4.variants[1].hedger)["region_update"] is False
+    # The ablation switch is a traced setting: on and off are one program.
+    assert dict(fig4.variants[1].params)["region_update"] is False
+    assert runner.static_part(fig4.variants[0]) == runner.static_part(fig4.variants[1])
     fig2 = select_variants(build_figure("fig2", "quick"), ["continuous"])
     # Same run, different label: one cache entry.
     assert runner.variant_key(fig4.variants[0], [0, 1], 0) == \
@@ -274,5 +276,5 @@ def test_ablation_demo_variants_share_figure2_cache_key():
     assert runner.variant_key(fig4.variants[0], [0, 1], 0) != \
         runner.variant_key(fig4.variants[1], [0, 1], 0)
     fig3 = select_variants(build_figure("fig3", "quick"), ["discrete + demos"])
-    assert dict(fig3.variants[1].hedger)["use_ivh"] is False
+    assert dict(fig3.variants[1].params)["use_ivh"] is False
 
