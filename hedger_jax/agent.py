@@ -27,14 +27,15 @@ from typing import Any, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from hedger_jax.config import HedgerConfig, reject_traced
-from hedger_jax import rng
 from hedger_jax.greedy import (greedy_action, greedy_action_from_uniform, greedy_candidates,
                                greedy_choice, greedy_draws)
 from hedger_jax.loops import masked_fori_loop
 from hedger_jax.memory import Memory, init_memory, refresh_index
 from hedger_jax.params import HedgerParams
+from hedger_jax.validation import expect_key
 from hedger_jax.replay_cache import (REUSE_MIN_CAPACITY, StepNeighbours, missing, record_shapes,
                                      replay_sets)
 from hedger_jax.replay_cache import usable as replay_cache_usable
@@ -152,7 +153,7 @@ def run_params(config: HedgerConfig, run: "RunConfig", params: Optional[HedgerPa
 
 def random_action(config: HedgerConfig, key: jax.Array) -> jax.Array:
     """A uniformly random action (A,): from the discrete set or in the box."""
-    return _random_action_from_uniform(config, rng.uniform(key, config.action_dim))
+    return _random_action_from_uniform(config, jax.random.uniform(key, (config.action_dim,)))
 
 
 def _random_action_from_uniform(config: HedgerConfig, u: jax.Array) -> jax.Array:
@@ -194,13 +195,13 @@ def _explore(config: HedgerConfig, run: RunConfig, memory: Memory, obs: jax.Arra
     a_dim = config.action_dim
     n_greedy = greedy_draws(config)
     n_explore = 2 * a_dim if run.exploration == "gaussian" else a_dim
-    u = rng.uniform(key, 1 + n_greedy + n_explore)
+    u = jax.random.uniform(key, (1 + n_greedy + n_explore,))
     ue = u[1 + n_greedy:]
     u_greedy = u[1:1 + n_greedy]
     explore_now = u[0] < p.epsilon
     if greedy_only is not False:
         greedy_only = jnp.asarray(greedy_only, bool)
-        u_greedy = jnp.where(greedy_only, rng.uniform(key, n_greedy), u_greedy)
+        u_greedy = jnp.where(greedy_only, jax.random.uniform(key, (n_greedy,)), u_greedy)
         explore_now = explore_now & ~greedy_only
     n_candidates = greedy_candidates(config).shape[0]
 
@@ -223,7 +224,9 @@ def _explore(config: HedgerConfig, run: RunConfig, memory: Memory, obs: jax.Arra
     action = out[0] if record else out
     low = jnp.asarray(config.action_low, jnp.float32)
     high = jnp.asarray(config.action_high, jnp.float32)
-    noise = p.noise_std * rng.normal_from_uniform(ue[:a_dim], ue[a_dim:])
+    # Box-Muller from two of the step's uniform draws (1 - u in (0, 1]: finite).
+    noise = p.noise_std * jnp.sqrt(-2.0 * jnp.log1p(-ue[:a_dim])) * jnp.cos(
+        jnp.float32(2.0 * np.pi) * ue[a_dim:])
     action = jnp.where(explore_now, jnp.clip(action + noise, low, high), action)
     if not record:
         return action
@@ -293,8 +296,8 @@ def _rollout(env: Any, env_params: Any, act, key: jax.Array, max_steps: int,
 
     def body(c):
         t, done, obs, state, act_state, key, buf, success, records = c
-        k_t = rng.fold_in(key, t)
-        k_act, k_step = rng.fold_in(k_t, 0), rng.fold_in(k_t, 1)
+        k_t = jax.random.fold_in(key, t)
+        k_act, k_step = jax.random.fold_in(k_t, 0), jax.random.fold_in(k_t, 1)
         out = act(k_act, obs, act_state)
         if len(out) != (2 if records is None else 3):
             raise ValueError("rollout: act must return (action, act_state), or (action, "
@@ -379,11 +382,11 @@ def evaluate_policy(env: Any, env_params: Any, act, key: jax.Array, n_episodes: 
     w = min(int(lanes or EVAL_LANES), n)
 
     def one_act(obs, key):
-        return jnp.reshape(act(obs, rng.fold_in(key, 0)), (env.action_space.action_dim,))
+        return jnp.reshape(act(obs, jax.random.fold_in(key, 0)), (env.action_space.action_dim,))
 
     def one_step(obs, state, key, action):
         next_obs, state, _, terminated, truncated, info = env.step(
-            rng.fold_in(key, 1), state, action, env_params)
+            jax.random.fold_in(key, 1), state, action, env_params)
         return next_obs, state, terminated, truncated, _success(info, terminated)
 
     def lane_select(mask, new, old):
@@ -393,7 +396,7 @@ def evaluate_policy(env: Any, env_params: Any, act, key: jax.Array, n_episodes: 
 
     def body(c):
         next_ep, ep, t, live, succeeded, obs, states, steps_out, success_out = c
-        k_step = jax.vmap(rng.fold_in)(keys[ep], t)
+        k_step = jax.vmap(jax.random.fold_in)(keys[ep], t)
         # The lanes' actions one after another (lax.map), their environment steps at once:
         # a vmapped policy is a second, batched copy of the greedy search in the program
         # (the training rollout has the single-query one), with the batched forms of its
@@ -605,6 +608,7 @@ def make_train(env: Any, config: HedgerConfig, run: RunConfig, *, env_params: An
         return new_state, BlockResult(ev, points, episodes, mean_len, memory.size, memory.flags)
 
     def init(key, params: Optional[HedgerParams] = None):
+        expect_key("key", key)
         state, k_eval = phase1(key, params)
         return state, do_eval(state.memory, k_eval, state.points, state.episodes,
                               jnp.float32(0.0), params)
@@ -613,6 +617,7 @@ def make_train(env: Any, config: HedgerConfig, run: RunConfig, *, env_params: An
         return block(state, jnp.zeros((), bool), state.key, params)
 
     def train(key, params: Optional[HedgerParams] = None):
+        expect_key("key", key)
         # One scan over the n_blocks + 1 evaluations (the first right after phase 1, with no
         # episodes), so the evaluation appears once in the program: the same results as
         # init then n_blocks run_blocks, about half the compile time of writing it that way.

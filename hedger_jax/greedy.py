@@ -18,10 +18,10 @@ from typing import Callable, NamedTuple, Tuple
 import jax
 import jax.numpy as jnp
 
-from hedger_jax import rng
 from hedger_jax.config import HedgerConfig
-from hedger_jax.memory import Memory, map_queries
+from hedger_jax.memory import Memory
 from hedger_jax.params import resolve
+from hedger_jax.validation import expect, expect_key
 from hedger_jax.prediction import Prediction, predict_detailed
 
 
@@ -127,12 +127,7 @@ def search_1d(f: Callable[[jax.Array], Tuple[jax.Array, ...]], low: float, high:
         g = f
         f = lambda x: tuple(g(x)) + (None,)  # noqa: E731
     if initial is None:
-        # One sample after another (``lax.map``), not a vmapped batch: one query's grid
-        # search reads its rows by contiguous windows (``index._first_trip``), which a batch
-        # cannot (continuous mountain-car training at 3e5 slots 1.06x, paired, results
-        # identical; the program also compiles faster). Under an outer vmap (seeds) each
-        # sample is still searched for every member at once.
-        f0, k0, aux0 = jax.lax.map(f, grid)
+        f0, k0, aux0 = jax.vmap(f)(grid)
     else:
         f0, k0 = initial[0], initial[1]
         aux0 = initial[2] if len(initial) > 2 else None
@@ -195,8 +190,7 @@ def _packed(p: Prediction) -> jax.Array:
 def _discrete_values(config: HedgerConfig, memory: Memory, state: jax.Array, params=None):
     """-> (actions (n, A), values (n,), known (n,), K of each (n, k) as ``_packed``)."""
     actions = jnp.asarray(config.discrete_actions, jnp.float32)          # (n, A)
-    p = map_queries(config, lambda a: predict_detailed(config, memory, state, a, params),
-                    actions)
+    p = jax.vmap(lambda a: predict_detailed(config, memory, state, a, params))(actions)
     return actions, p.value, p.known, _packed(p)
 
 
@@ -235,6 +229,7 @@ def greedy_value(config: HedgerConfig, memory: Memory, state: jax.Array, params=
     Deterministic (no key). Unknown candidates count as ``default_value``; ``known`` says
     whether any candidate was known.
     """
+    expect("state", state, (config.state_dim,))
     if config.is_discrete:
         _, values, known, _ = _discrete_values(config, memory, state, params)
         return jnp.max(values), jnp.any(known)
@@ -300,5 +295,7 @@ def greedy_action(config: HedgerConfig, memory: Memory, state: jax.Array, key: j
     randomness is one draw of ``hedger_jax.rng`` (one fused operation, not ``jax.random``'s
     loops).
     """
-    u = rng.uniform(key, greedy_draws(config))
+    expect("state", state, (config.state_dim,))
+    expect_key("key", key)
+    u = jax.random.uniform(key, (greedy_draws(config),))
     return greedy_action_from_uniform(config, memory, state, u, params)

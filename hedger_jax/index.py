@@ -73,9 +73,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.custom_batching import custom_vmap
 
-from hedger_jax.canonical import canonical_order
 from hedger_jax.config import GRID_MAX_CAPACITY
-from hedger_jax.fusion import computed_once
 from hedger_jax.kselect import cpu_kernels, smallest_k, true_positions
 from hedger_jax.loops import batch_cond
 
@@ -83,11 +81,6 @@ from hedger_jax.loops import batch_cond
 _MAX_CELLS = 1 << 22
 #: Relative margin of the cell side over the level radius (float32 round-off of coordinates).
 _SIDE_MARGIN = 1e-3
-#: Queries rescanned at level 0 together under vmap (``loops.batch_cond``'s ``compact``).
-_RESCAN_GROUP = 16
-#: Queries that go on scanning after ``first_trips`` together under vmap (``batch_cond``'s
-#: ``compact``).
-_REST_GROUP = 16
 #: Subdivision of the contiguous dimension (cells of side radius / _FINE along it).
 _FINE = 4
 #: Points merged into the tables per O(N) pass of ``refresh``.
@@ -357,7 +350,10 @@ def geometry(config) -> Geometry:
         level = _make_level(config, radius / _LEVEL_RATIO ** lv, bounds, values, start)
         if level is None or (levels and level.cells == levels[-1].cells):
             break
-        if wanted is None and levels:
+        # Levels down to the one covering the config's own radius are always kept: a traced
+        # k_thresh between it and max_k_thresh then has a covering level of its size.
+        covering = level.radius >= config.k_thresh * (1.0 - 1e-9)
+        if wanted is None and levels and not covering:
             expected = config.capacity / n_values * _rows_volume(level, bounds)
             if expected < _LEVEL_ADD * config.max_neighbours:
                 break
@@ -372,13 +368,16 @@ def geometry(config) -> Geometry:
 
 def scanned_fraction(config) -> float:
     """The fraction of a memory of uniformly spread points (over ``default_bounds``) that a
-    query's rows cover at level 0, before rows out of reach are skipped: an upper bound of how
+    query's rows cover at the level covering the config's own radius, before rows out of
+    reach are skipped: an upper bound of how
     much of the memory a level-0 grid search reads (tested), where brute force reads all of
     it. Small for a bandwidth that is small against the input ranges
     (mountain car and the corridor: 0.001-0.013); large for a wide kernel or many dimensions
     (d = 4 with bandwidth 0.1: 0.065; d = 8: 0.07), where brute force was 2-10x faster
     (measured); ``HedgerConfig``'s "auto" index uses it."""
-    return _rows_volume(geometry(config).levels[0], default_bounds(config))
+    levels = geometry(config).levels
+    cover = [lv for lv in levels if lv.radius >= config.k_thresh * (1.0 - 1e-9)][-1]
+    return _rows_volume(cover, default_bounds(config))
 
 
 # ------------------------------------------------------------------------------ cells
@@ -516,10 +515,8 @@ def empty(config) -> GridIndex:
 
 
 def _excl_cumsum(x: jax.Array) -> jax.Array:
-    """Exclusive prefix sum (an associative scan: 2-3x faster than ``jnp.cumsum`` on XLA's
-    CPU backend for 10^4-10^6 entries, measured)."""
-    c = jax.lax.associative_scan(jnp.add, x)
-    return (c - x).astype(jnp.int32)
+    """Exclusive prefix sum of counts -> int32."""
+    return (jnp.cumsum(x) - x).astype(jnp.int32)
 
 
 def build(config, points: jax.Array, size: jax.Array) -> GridIndex:
@@ -566,10 +563,8 @@ def note_write(config, index: GridIndex, z: jax.Array, slot: jax.Array,
     # 5 ms per write at capacity 300,000), and a window with a traced start became a gather
     # and scatter of R columns per write under vmap.
     if R:
-        # Computed once: fused into the O(R) passes below, XLA recomputed the key's ~30
-        # scalar operations for every one of the R entries (``hedger_jax.fusion``).
-        key = computed_once(cell_keys(geo.levels[0], z))
-        ins = computed_once(did_write & (n_new < R))
+        key = cell_keys(geo.levels[0], z)
+        ins = did_write & (n_new < R)
         rkeys, order, spoints = _insert_recent(L, rkeys, order, spoints, key, slot, z, n_new,
                                                ins)
         b = jnp.arange(geo.n_buckets + 1, dtype=jnp.int32)
@@ -819,19 +814,34 @@ def refresh(config, index: GridIndex, points: jax.Array, head: jax.Array, size: 
 
 
 # ------------------------------------------------------------------------------ query
-def _choose_level(geo: Geometry, index: GridIndex, first, last, live, k: int):
-    """The finest level whose rows hold >= geo.target * k indexed points (else 0), and its
-    table segments: (level (), positions (R,), lengths (R,)). first/last/live: ``level_rows``."""
+def _table_segments(geo: Geometry, index: GridIndex, first, last, live):
+    """Every level's table segments of the query's rows: (positions, lengths), each (L, R).
+    first/last/live: ``level_rows``."""
     starts = jnp.asarray([lv.start for lv in geo.levels], jnp.int32)[:, None]
     s0 = index.starts[starts + first]
-    length = jnp.where(live, index.starts[starts + last + 1] - s0, 0)         # (L, R)
-    if len(geo.levels) == 1:
-        return jnp.zeros((), jnp.int32), s0[0], length[0]
+    return s0, jnp.where(live, index.starts[starts + last + 1] - s0, 0)
+
+
+def covering_level(geo: Geometry, k_thresh) -> jax.Array:
+    """The finest level whose radius covers ``k_thresh`` (int32 ()): every stored point within
+    k_thresh of a query lies in the query's rows at that level. Level 0 covers the largest
+    radius the config allows (``HedgerConfig.max_k_thresh``)."""
+    radii = jnp.asarray([lv.radius for lv in geo.levels], jnp.float32)
+    return jnp.maximum(jnp.sum((radii >= k_thresh).astype(jnp.int32)) - 1, 0)
+
+
+def level_segments(geo: Geometry, index: GridIndex, first, last, live, k: int, k_thresh):
+    """The levels a query searches: -> (cover (), level (), positions (L, R), lengths (L, R)).
+    ``cover`` is ``covering_level``; ``level`` the finest level at or below it whose rows hold
+    >= geo.target * k indexed points, else ``cover``; positions and lengths every level's table
+    segments of the query's rows. first/last/live: ``level_rows``."""
+    s0, length = _table_segments(geo, index, first, last, live)
+    cover = covering_level(geo, k_thresh)
     counts = jnp.sum(length, axis=1)
-    lv = jnp.zeros((), jnp.int32)
+    lv = cover
     for i in range(1, len(geo.levels)):
-        lv = jnp.where(counts[i] >= int(math.ceil(geo.target * k)), i, lv)
-    return lv, s0[lv], length[lv]
+        lv = jnp.where((i > cover) & (counts[i] >= int(math.ceil(geo.target * k))), i, lv)
+    return cover, lv, s0, length
 
 
 def _recent_segments(geo: Geometry, index: GridIndex, first, last, live):
@@ -849,7 +859,7 @@ def _recent_segments(geo: Geometry, index: GridIndex, first, last, live):
 
 
 def _scan(config, geo: Geometry, index: GridIndex, head, z, lv, tab_start, tab_len,
-          rec_start, rec_len, order=None):
+          rec_start, rec_len):
     """Running top-k over the candidates: per row, its table segment at level ``lv`` then its
     recent writes; last, the writes since the merge beyond the first R. Every candidate comes
     from the same (level or recent row, column) gather. -> (best slots (k,), best squared
@@ -899,21 +909,9 @@ def _scan(config, geo: Geometry, index: GridIndex, head, z, lv, tab_start, tab_l
             ok = ok & ~(in_tab & (jax.lax.rem(slot - h0 + n, n) < n_new))
         return slot, d2, ok
 
-    # The first trip of a multi-level scan (positions 0 .. width - 1) by ``_first_trip``:
-    # one query's by segment windows, a vmapped batch's by the column count (same values).
-    by_segments = L > 1 and config.full_policy != "overwrite_oldest" and n >= _WINDOW
-    sub_len = jnp.stack([tab_len, lengths - tab_len], 1).reshape(-1)
-    sub_col = jnp.stack([t_start, r_start], 1).reshape(-1)
-
     def trip(p0, best_d2, best_idx, width, fresh=False):
         p = p0 + jnp.arange(width, dtype=jnp.int32)                  # (width,)
-        columns = _candidate_columns
-        if fresh and by_segments:
-            d2, ok = _first_trip(width)(index.spoints, z, lv, table, sub_begin, sub_delta,
-                                        sub_len, sub_col, total, r2)
-            slot = p
-        else:
-            slot, d2, ok = candidates(p, columns)
+        slot, d2, ok = candidates(p, _candidate_columns)
         if L > 1:
             # Several levels: the kept candidates are carried as sequence positions (unique per
             # query, free), and only the k kept at the end become slots, instead of gathering
@@ -968,35 +966,15 @@ def _scan(config, geo: Geometry, index: GridIndex, head, z, lv, tab_start, tab_l
             return jnp.where(new, d2[src], best[0]), jnp.where(new, slot[src], best[1])
 
         over = n_best + jnp.sum(ok.astype(jnp.int32)) > k
-        return (p0 + width,) + batch_cond(over, top, append, (best_d2, best_idx),
-                                          compact=_RESCAN_GROUP)
+        return (p0 + width,) + batch_cond(over, top, append, (best_d2, best_idx))
 
     carry = (jnp.zeros((), jnp.int32), jnp.full((k,), jnp.inf, jnp.float32),
              jnp.zeros((k,), jnp.int32))
     if L == 1:
         # One level (small memories): rows hold few candidates (1e4 uniform points: at most
         # 43, one trip); one loop (one copy of the trip in the program: compile time).
-        def scan_all(_):
-            _, best_d2, best_idx = jax.lax.while_loop(lambda c: c[0] < total,
-                                                      lambda c: trip(*c, chunk), carry)
-            if order is not None:
-                best_idx, best_d2 = order(best_idx, best_d2)
-            return best_d2, best_idx
-
-        # Where most queries' candidates fit one step of at most k entries (``direct_width``),
-        # those are the answer as they are; only the queries with more go through the loop
-        # (``_RESCAN_GROUP`` at a time under vmap). (At most k: a wider answer, 48 entries,
-        # made the canonical order's rank fall off XLA's fused reductions: 5 us per query.)
-        width = direct_width(config)
-        if not width:
-            return scan_all(None)[::-1]
-        slot, d2, ok = candidates(jnp.arange(width, dtype=jnp.int32), _candidate_columns)
-        slot, d2 = jnp.where(ok, slot, 0), jnp.where(ok, d2, jnp.inf)
-        if order is not None:
-            slot, d2 = order(computed_once(slot), computed_once(d2))
-        direct = _widen(d2, slot, k)
-        best_d2, best_idx = batch_cond(total > width, scan_all, lambda c: c, direct,
-                                       compact=_RESCAN_GROUP)
+        _, best_d2, best_idx = jax.lax.while_loop(lambda c: c[0] < total,
+                                                  lambda c: trip(*c, chunk), carry)
         return best_idx, best_d2
     # Several levels: two stages. A query's rows at its level hold about geo.target k to
     # twice that many candidates, so the first stage is one wide trip (``first_trips`` chunks:
@@ -1011,20 +989,9 @@ def _scan(config, geo: Geometry, index: GridIndex, head, z, lv, tab_start, tab_l
     def rest(c):
         return jax.lax.while_loop(lambda c: c[0] < total, lambda c: trip(*c, chunk), c)
 
-    _, best_d2, best_idx = batch_cond(carry[0] < total, rest, lambda c: c, carry,
-                                      compact=_REST_GROUP)
+    _, best_d2, best_idx = batch_cond(carry[0] < total, rest, lambda c: c, carry)
     best_idx = candidates(best_idx, _candidate_columns)[0]            # positions -> slots
     return best_idx, best_d2
-
-
-def searches_alone(config) -> bool:
-    """Whether a query searched on its own reads its first scan trip by contiguous windows
-    (``_first_trip``): a grid of several levels (not ``overwrite_oldest``, whose stale-slot
-    test needs every candidate's slot). Then a small batch of queries over one memory (a
-    greedy search's candidate actions, a replay step's queries) is searched one query after
-    another (``memory.map_queries``) rather than vmapped."""
-    return (config.index_kind == "grid" and len(geometry(config).levels) > 1
-            and config.full_policy != "overwrite_oldest" and config.capacity >= _WINDOW)
 
 
 def _candidate_cells(lv, L: int, n: int, col, in_tab):
@@ -1039,193 +1006,31 @@ def _candidate_points(spoints, row, col) -> jax.Array:
     return jnp.stack([spoints[row, i, col] for i in range(spoints.shape[1])])
 
 
-#: Columns one step of ``_first_trip_by_segments`` reads from a segment (one vector load
-#: per coordinate).
-_WINDOW = 16
-
-
-def _first_trip_by_count(spoints, z, lv, table, sub_begin, sub_delta, sub_len, sub_col, total,
-                         r2, width: int):
-    """The first trip's squared distances and live flags, (width,) each, candidate by
-    candidate: every position's column from the sub-segment begins, then a gather of its
-    point (``_scan``'s ``candidates``)."""
-    del sub_len, sub_col
-    L, n = spoints.shape[0] - 1, spoints.shape[-1]
-    p = jnp.arange(width, dtype=jnp.int32)
-    col, in_tab = _candidate_columns(p, table, sub_begin, sub_delta)
-    row, col = _candidate_cells(lv, L, n, col, in_tab)
-    d2 = _sqdist(_candidate_points(spoints, row, col), z)
-    return d2, (p < total) & (d2 <= r2)
-
-
-def _first_trip_by_segments(spoints, z, lv, sub_begin, sub_len, sub_col, r2, width: int):
-    """``_first_trip_by_count`` for one query, segment by segment: each sub-segment (a row's
-    table part, then its recent part; ``_scan``) is read in windows of ``_WINDOW`` contiguous
-    columns (``dynamic_slice``: vector loads) whose distances are written at the
-    sub-segment's positions, up to the trip's width. The same distances (the same formula on
-    the same points); positions beyond the candidates stay +inf, so they are not live.
-
-    A window that would run past the arrays' end starts earlier (``dynamic_slice`` clamps)
-    and its lanes are shifted by the same amount; lanes outside the sub-segment keep the
-    values already written (a window's tail must not overwrite the next sub-segment's
-    positions: sub-segments are written in position order, and each writes only its own)."""
-    L, n = spoints.shape[0] - 1, spoints.shape[-1]
-    dim = spoints.shape[1]
-    lane = jnp.arange(_WINDOW, dtype=jnp.int32)
-    # Table parts (even sub-segments) are in level lv's row, recent parts in row L.
-    odd = jax.lax.broadcasted_iota(jnp.int32, sub_begin.shape, 0) % 2 == 1
-    rows = jnp.where(odd, L, lv)
-    # Positions [0, width) at [_WINDOW, _WINDOW + width): room for a shifted window's lanes
-    # on both sides.
-    buf = jnp.full((_WINDOW + width + _WINDOW,), jnp.inf, jnp.float32)
-
-    def segment(s, buf):
-        begin, row, col0 = sub_begin[s], rows[s], sub_col[s]
-        stop = jnp.minimum(sub_len[s], width - begin)      # columns of it inside the trip
-
-        def window(c):
-            off, buf = c
-            col = col0 + off
-            start = jnp.clip(col, 0, n - _WINDOW)
-            pts = jax.lax.dynamic_slice(spoints, (row, 0, start), (1, dim, _WINDOW))[0]
-            rel = start + lane - col                       # lane's column - col
-            keep = (rel >= 0) & (off + rel < stop)
-            at = _WINDOW + begin + off - (col - start)
-            old = jax.lax.dynamic_slice(buf, (at,), (_WINDOW,))
-            new = jnp.where(keep, _sqdist(pts, z), old)
-            return off + _WINDOW, jax.lax.dynamic_update_slice(buf, new, (at,))
-
-        return jax.lax.while_loop(lambda c: c[0] < stop, window,
-                                  (jnp.zeros((), jnp.int32), buf))[1]
-
-    buf = jax.lax.fori_loop(0, sub_begin.shape[0], segment, buf)
-    d2 = buf[_WINDOW:_WINDOW + width]
-    return d2, d2 <= r2
-
-
-@functools.lru_cache(maxsize=None)
-def _first_trip(width: int):
-    """The first trip of a multi-level scan: (spoints, z, lv, table, sub_begin, sub_delta,
-    sub_len, sub_col, total, r2) -> (squared distances, live), (width,) each, at positions
-    0 .. width - 1 of the query's candidate sequence. One query: ``_first_trip_by_segments``;
-    under ``vmap``: ``_first_trip_by_count``, whose gathers XLA's CPU backend emits element by
-    element for a batch as for one query, while a batch's slices would be gathers too (the
-    segment form for a vmapped batch ran 0.47x, measured). Same values either way.
-
-    Measured (paired, 2-core Intel Xeon, continuous mountain car at 3e5 slots, results
-    identical): training 1.05x with the greedy search's grid still vmapped (its refinements
-    and the replay's use the segment form), and with the grid searched action by action
-    (``greedy.search_1d``) a further 1.06x."""
-
-    @custom_vmap
-    def first(spoints, z, lv, table, sub_begin, sub_delta, sub_len, sub_col, total, r2):
-        return _first_trip_by_segments(spoints, z, lv, sub_begin, sub_len, sub_col, r2, width)
-
-    @first.def_vmap
-    def first_vmap(axis_size, in_batched, *args):
-        axes = tuple(0 if b else None for b in in_batched)
-        out = jax.vmap(functools.partial(_first_trip_by_count, width=width), in_axes=axes)(*args)
-        return out, (True, True)
-
-    return first
-
-
-def _widen(d2, idx, width: int):
-    """(d2, idx) padded to ``width`` entries (+inf distances, slot 0)."""
-    pad = width - d2.shape[-1]
-    if pad <= 0:
-        return d2, idx
-    return (jnp.concatenate([d2, jnp.full((pad,), jnp.inf, d2.dtype)]),
-            jnp.concatenate([idx, jnp.zeros((pad,), idx.dtype)]))
-
-
-def _columns_by_search(p, table, sub_begin, sub_delta):
-    """``_candidate_columns`` by a branch-free binary search over the segment begins (table
-    column 0, ascending) and a gather of the segment's row of ``table``."""
-    del sub_begin, sub_delta
-    n_rows = table.shape[0] - 1
-    seg = jnp.zeros(p.shape, jnp.int32)
-    step = 1 << (n_rows.bit_length() - 1) if n_rows else 0
-    while step:
-        cand = jnp.minimum(seg + step, n_rows)
-        seg = jnp.where(p >= table[cand, 0], cand, seg)
-        step >>= 1
-    info = table[seg]                                                  # (width, 4)
-    off = p - info[:, 0]
-    in_tab = off < info[:, 2]
-    return jnp.where(in_tab, info[:, 1] + off, info[:, 3] + off - info[:, 2]), in_tab
-
-
 #: Flag bit of ``_columns_by_count``'s single sum: set for a candidate in a table part. The
 #: grid index needs every column (< capacity + scan width) below it (``geometry`` checks).
 _TAB_BIT = 1 << 30
 
 
 def _columns_by_count(p, table, sub_begin, sub_delta):
-    """``_candidate_columns`` by comparing every position with every sub-segment begin: the
-    column is p plus the sum of the shift changes (``sub_delta``) at the begins <= p (they
-    telescope to the shift of p's sub-segment, empty ones included), and p is in a table
-    part iff an odd number of begins are <= p.
+    """The column (in the level's or the recent list's row of the index arrays) and table flag
+    of the candidates at positions p (width,) of a query's candidate sequence -> (int32
+    (width,), bool (width,)). sub_begin, sub_delta (2 segments,): every sub-segment's first
+    position and the change of the position-to-column shift there (``_scan``).
 
-    One sum gives both: the begins <= p are a prefix (they ascend), so adding +``_TAB_BIT`` at
-    every table part's begin and -``_TAB_BIT`` at every recent part's begin adds the bit
-    exactly when p's sub-segment is a table part; the column (>= 0, below the bit) is the rest.
-    The begins and changes are materialised once per query (``fusion.computed_once``): fused
-    into the (width, sub-segments) comparison, XLA recomputed them for every element (4x
-    slower). Against two sums (the column, the parity), paired, bit-identical, 2-core CPU:
-    training 1.16x / 1.13x continuous / discrete at 3e5 slots, 1.11x / 1.13x at 2e4; batched
-    selection 1.16x at 3e5, 0.96x at 1e4; predictions 1.06x at 3e5, 0.985x at 1e4.
-
-    The sum over the begins is unrolled into elementwise adds (one per begin), not written as
-    a (width, begins) reduction: XLA's CPU code for that reduction vectorised across the ~20
-    begins, with horizontal sums for every position (a profile of continuous training at 3e5
-    slots found it the hottest loop, ~11 % of samples); the adds vectorise across the
-    positions. Integer sums, so bit-identical. Paired, 2-core CPU: training continuous 1.12x
-    at 3e5 slots, 1.01x at 2e4; discrete 1.00x at 3e5; batched selection 0.99-1.03x."""
+    The column is p plus the sum of the shift changes at the sub-segment begins <= p (they
+    telescope to the shift of p's sub-segment, empty ones included); p is in a table part iff
+    an odd number of begins are <= p. One sum gives both: adding +``_TAB_BIT`` at every table
+    part's begin and -``_TAB_BIT`` at every recent part's begin (the begins <= p are a
+    prefix, as they ascend) sets the bit exactly for a table part."""
     del table
-    sub_begin = computed_once(sub_begin)                              # (2 (rows + 1),)
-    # Built in the program, not as a NumPy constant (one would become an operand of the
-    # custom_vmap call, which a vmapped cond may batch: see ``kselect._before``).
     even = jax.lax.broadcasted_iota(jnp.int32, sub_delta.shape, sub_delta.ndim - 1) % 2 == 0
-    delta = computed_once(sub_delta + jnp.where(even, _TAB_BIT, -_TAB_BIT))
-    acc = p                                       # the sum, unrolled (see above)
-    for s in range(sub_begin.shape[-1]):
-        acc = acc + jnp.where(p >= sub_begin[s], delta[s], 0)
+    delta = sub_delta + jnp.where(even, _TAB_BIT, -_TAB_BIT)
+    acc = p + jnp.sum(jnp.where(p[:, None] >= sub_begin[None, :], delta[None, :], 0), axis=1)
     return acc & (_TAB_BIT - 1), acc >= _TAB_BIT
 
 
-def _columns_dispatch(search_batches: Tuple[int, int]):
-    """The candidate-column function (see ``_candidate_columns``) that uses the binary search
-    under ``vmap`` with search_batches[0] <= members < search_batches[1], else the count."""
-
-    @custom_vmap
-    def columns(p, table, sub_begin, sub_delta):
-        return _columns_by_count(p, table, sub_begin, sub_delta)
-
-    @columns.def_vmap
-    def columns_vmap(axis_size, in_batched, p, table, sub_begin, sub_delta):
-        lo, hi = search_batches
-        impl = _columns_by_search if lo <= axis_size < hi else _columns_by_count
-        axes = tuple(0 if b else None for b in in_batched)
-        return jax.vmap(impl, in_axes=axes)(p, table, sub_begin, sub_delta), (True, True)
-
-    return columns
-
-
-#: ``_candidate_columns(p, table, sub_begin, sub_delta)``: the column (in the level's or the
-#: recent list's row of the index arrays) and table flag of the candidates at positions p
-#: (width,) of a query's candidate sequence -> (int32 (width,), bool (width,)). table:
-#: (segments, 4) (begin, table start, table length, recent start); sub_begin, sub_delta:
-#: (2 segments,) (``_scan``). Both ways give the same result; which is cheaper depends on how
-#: many queries run together (XLA's CPU backend emits the count's small reductions as scalar
-#: loops, and its batched gathers element by element). With the count's single sum
-#: (``_columns_by_count``) the search serves vmapped batches of 13-255 queries only (it served
-#: 8-255, and every batch below 256 in the multi-level scan's later trips). Paired, training,
-#: bit-identical, 2-core CPU, against those ranges: continuous 1.20x at 3e5 and 1e5 slots
-#: (greedy batches of 11-12 queries), 1.04x at 2e4; discrete 1.08x at 3e5, 1.03x at 1e6,
-#: 1.01x at 2e4; 4 vmapped seeds 0.99x. Searching from 17 instead (batch_cond's groups of 16
-#: counting too): continuous 1.06x, discrete 0.96x at 3e5, so 13.
-_candidate_columns = _columns_dispatch((13, 256))
+#: The candidates' columns: ``_columns_by_count`` (see there).
+_candidate_columns = _columns_by_count
 
 
 #: Widest default scan step (``chunk_width``), and the steps' granularity.
@@ -1261,41 +1066,6 @@ def chunk_width(config) -> int:
     return int(min(max(width, _CHUNK_STEP), _CHUNK))
 
 
-def direct_width(config) -> int:
-    """Width of the one-level scan's direct step (0: none), for a one-level grid where about
-    90 % of a full memory's queries (uniform points, Poisson counts: m + 1.28 sqrt(m) <= k)
-    have at most k candidates, else 0. The width: min(``chunk_width``, k) where the config
-    sets ``index_chunk``; otherwise the multiple of ``_DIRECT_STEP`` at or above
-    m + 2.33 sqrt(m) (about 99 % of those queries), at most min(``chunk_width``, k).
-
-    A query whose candidates all fit that step takes them as they are (+inf where beyond the
-    radius: no selection, no compaction); the others run the scan loop from the start. Where
-    most queries fit, it is faster (batched selection 1.27-1.30x at 1e3 slots, 1.42x at 1e4;
-    paired, bit-identical, 2-core CPU); where they do not it is one wasted step per query
-    (training with 19,000 points in 20,000 slots, where m = 47: 0.93x discrete, 0.87x
-    continuous) and more program to compile, so it is not used there. Narrower than k, the
-    step's K is put in canonical order over its width (``select_orders``: w x w
-    comparisons), so the 99 % width beats min(chunk, k): batched selection 1.06x / 1.43x
-    discrete / continuous at 1e3 slots (8 / 16 instead of 16 / 32), 1.15x continuous at 2e3,
-    1.44x / 1.20x discrete at 3e3 / 5e3; predictions 0.98x / 1.09x at 1e3; training
-    0.96-1.06x at 1e3-3e3 (paired, bit-identical, 2-core CPU)."""
-    if len(geometry(config).levels) > 1:
-        return 0
-    k = min(config.max_neighbours, config.capacity)
-    m = _full_memory_candidates(config)
-    if m + 1.28 * math.sqrt(m) > k:
-        return 0
-    chunk = chunk_width(config)
-    if getattr(config, "index_chunk", None) is not None:
-        return min(chunk, k)
-    width = _DIRECT_STEP * int(math.ceil((m + 2.33 * math.sqrt(m)) / _DIRECT_STEP))
-    return max(min(width, chunk, k), 1)
-
-
-#: Granularity of the automatic ``direct_width``.
-_DIRECT_STEP = 8
-
-
 def first_trips(config) -> int:
     """Width, in chunks of ``chunk_width``, of the grid scan's first trip with several levels,
     made for every query of a vmapped batch before only those with more candidates go on:
@@ -1315,19 +1085,6 @@ def _sqdist(points: jax.Array, z: jax.Array) -> jax.Array:
     return d2
 
 
-def select_orders(config) -> bool:
-    """Whether ``select`` returns K in canonical order (``hedger_jax.canonical``) itself:
-    with a one-level grid whose direct step is narrower than k (small memories, e.g. 1e3
-    mountain-car slots: 16 of 32). Its queries' K is then ordered over the step's width
-    (a quarter of the k x k comparisons and half the selections), and only the queries that
-    go through the scan loop are ordered over k, inside that branch. Paired, bit-identical,
-    2-core CPU: batched selection 1.16x / 1.18x at 1e3 / 2e3 slots (discrete); with a step
-    of k entries (1e4 slots) the same split was 0.94x, so there the caller orders K."""
-    if len(geometry(config).levels) > 1:
-        return False
-    return 0 < direct_width(config) < min(config.max_neighbours, config.capacity)
-
-
 def select(config, points: jax.Array, head: jax.Array, index: GridIndex, z: jax.Array,
            k_thresh=None):
     """Exact K of query z (d,) within ``k_thresh`` (default the config's; at most the radius
@@ -1336,67 +1093,43 @@ def select(config, points: jax.Array, head: jax.Array, index: GridIndex, z: jax.
 
     Same contract as the brute-force search (k = min(max_neighbours, capacity), +inf where
     there is no candidate; the caller pads, masks and puts K in canonical order), except the
-    order: ascending squared distances with several levels, unordered with one -- or, where
-    ``select_orders(config)``, already in canonical order (``hedger_jax.canonical``).
+    order: ascending squared distances with several levels, unordered with one.
     """
     geo = geometry(config)
     n = points.shape[-1]
     k = min(config.max_neighbours, n)
-    r2 = jnp.float32(config.k_thresh if k_thresh is None else k_thresh) ** 2
-    # The query once (hedger_jax.fusion): its producers (scaling an observation sliced from an
-    # episode) were recomputed inside every row and table fusion (training 1.03x, measured).
-    z = computed_once(z)
+    k_thresh = jnp.float32(config.k_thresh if k_thresh is None else k_thresh)
+    r2 = k_thresh ** 2
     first, last, live = level_rows(geo, z)
-    # The rows once too: they were recomputed from z (cell coordinates, clamps, gaps) inside
-    # each of the ~8 gathers and sums that use them (batched selection 1.10x / 1.16x at 1e3
-    # slots discrete / continuous, 1.11x at 1e4; continuous training 1.24x at 2e4, neutral
-    # at 3e5; paired, bit-identical, 2-core CPU).
-    rows = computed_once(jnp.stack([first, last, live.astype(jnp.int32)]))
-    first, last, live = rows[0], rows[1], rows[2] != 0
     if geo.recent:
-        # A merged index (no writes since the merge: every refresh that merges, e.g. a memory
-        # indexed once and then only queried) has no recent segments; a branch on the
-        # memory's n_new (not per query: one branch for a batch sharing the memory) skips
-        # their lookups. Batched selection at 1e3 slots 1.07-1.13x; training (where n_new is
-        # rarely 0) 0.98x / 1.09x discrete / continuous at 2e4, within noise (paired,
-        # bit-identical, 2-core CPU).
-        zs = jnp.zeros(first.shape[1:], jnp.int32)
-        rec_start, rec_len = jax.lax.cond(
-            index.n_new > 0, lambda a: _recent_segments(geo, index, *a), lambda a: (zs, zs),
-            (first[0], last[0], live[0]))
+        rec_start, rec_len = _recent_segments(geo, index, first[0], last[0], live[0])
     else:
         rec_start = rec_len = jnp.zeros(first.shape[1:], jnp.int32)
-    lv, tab_start, tab_len = _choose_level(geo, index, first, last, live, k)
-    canon = select_orders(config)          # then one level: _scan orders each branch
-
-    def order(idx, d2):                       # K in canonical order (over d2's width)
-        idx, d2, _ = canonical_order(idx, d2, d2 <= r2)
-        return idx, d2
-
-    found = _scan(config, geo, index, head, z, lv, tab_start, tab_len, rec_start, rec_len,
-                  order=order if canon else None)
-    if len(geo.levels) > 1:
-        # Accept a finer level's answer only if it found k neighbours within its radius: then
-        # nothing outside its rows can be nearer. Else rescan at level 0.
-        ok = (lv == 0) | jnp.all(jnp.isfinite(found[1]))
+    cover, lv, seg_start, seg_len = level_segments(geo, index, first, last, live, k, k_thresh)
+    if len(geo.levels) == 1:
+        found = _scan(config, geo, index, head, z, jnp.zeros((), jnp.int32), seg_start[0],
+                      seg_len[0], rec_start, rec_len)
+    else:
+        # A finer level than the covering one is used when its rows hold enough points, and
+        # its answer kept only if it found k neighbours within its radius (then nothing
+        # outside its rows is nearer); else the covering level is scanned.
+        found = _scan(config, geo, index, head, z, lv, seg_start[lv], seg_len[lv], rec_start,
+                      rec_len)
+        ok = (lv == cover) | jnp.all(jnp.isfinite(found[1]))
 
         def rescan(_):
-            s0 = index.starts[first[0]]
-            l0 = jnp.where(live[0], index.starts[last[0] + 1] - s0, 0)
-            return _scan(config, geo, index, head, z, jnp.zeros((), jnp.int32), s0, l0,
+            return _scan(config, geo, index, head, z, cover, seg_start[cover], seg_len[cover],
                          rec_start, rec_len)
 
         # A branch, not a loop: XLA hoists loop-invariant work out of a while loop, which
-        # would run the rescan always. Under vmap (a batch of queries) only the queries that
-        # need it are rescanned, 16 at a time: one such query in 4096 made the whole batch
-        # pay for a level-0 scan (300k slots: 3.5x slower, measured).
-        found = batch_cond(~ok, rescan, lambda c: c, found, compact=_RESCAN_GROUP)
+        # would run the rescan always; under vmap only when some query needs it.
+        found = batch_cond(~ok, rescan, lambda c: c, found)
     if config.full_policy == "overwrite_oldest":
         # Saturated (more writes since the merge than slots): brute force over every slot.
         def brute(_):
             d2, idx = smallest_k(_sqdist(points, z), jnp.arange(n, dtype=jnp.int32), k,
                                  kernel_form=len(geo.levels) == 1)
-            return order(idx, d2) if canon else (idx, d2)
+            return idx, d2
 
         found = batch_cond(index.n_new > n, brute, lambda c: c, found)
     best_idx, best_d2 = found

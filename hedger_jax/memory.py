@@ -27,6 +27,7 @@ from hedger_jax import index as _grid
 from hedger_jax.canonical import canonical_order
 from hedger_jax.config import HedgerConfig
 from hedger_jax.params import HedgerParams, resolve
+from hedger_jax.validation import expect
 
 FLAG_FULL = 1
 FLAG_NONFINITE = 2
@@ -92,19 +93,6 @@ def uses_index(config: HedgerConfig) -> bool:
     return config.index_kind == "grid"
 
 
-def map_queries(config: HedgerConfig, fn, queries):
-    """fn over the leading axis of queries (a pytree): one query after another
-    (``lax.map``) where a query searched alone is faster (``index.searches_alone``: its scan
-    reads contiguous windows, a vmapped batch gathers candidate by candidate), else vmapped.
-    Same results. Measured (paired, 2-core Intel Xeon, mountain car at 3e5 slots, results
-    identical): discrete training 1.023x for the greedy search's 3 actions and 1.018x more for
-    the replay's searches; continuous 0.99x for the replay's (within noise), its training
-    program compiling in 25 s instead of 30 s."""
-    if _grid.searches_alone(config):
-        return jax.lax.map(fn, queries)
-    return jax.vmap(fn)(queries)
-
-
 def scale_inputs(config: HedgerConfig, state: jax.Array, action: jax.Array,
                  params: Optional[HedgerParams] = None) -> jax.Array:
     """Scaled query z = (concat(state, action) - offset) * scale (the params' scaling, or the
@@ -146,6 +134,7 @@ def select_neighbours(config: HedgerConfig, memory: Memory, z: jax.Array,
     index (``hedger_jax.index``): the cells around the query plus the points written since
     the last ``refresh_index``.
     """
+    expect("z", z, (config.dim,))
     capacity = memory.values.shape[-1]
     k_thresh = resolve(config, params).k_thresh
     if uses_index(config):
@@ -161,7 +150,7 @@ def select_neighbours(config: HedgerConfig, memory: Memory, z: jax.Array,
             config, jax.lax.stop_gradient(memory.points), memory.head,
             jax.tree_util.tree_map(jax.lax.stop_gradient, index), jax.lax.stop_gradient(z),
             k_thresh)
-        return _pad_neighbours(config, idx, d2_sel, mask, ordered=_grid.select_orders(config))
+        return _pad_neighbours(config, idx, d2_sel, mask)
     d2 = squared_distances(memory.points, z)
     d2 = jnp.where(valid_mask(memory), d2, jnp.inf)
     k = min(config.max_neighbours, capacity)
@@ -171,7 +160,7 @@ def select_neighbours(config: HedgerConfig, memory: Memory, z: jax.Array,
     return _pad_neighbours(config, idx, d2_sel, mask)
 
 
-def _pad_neighbours(config: HedgerConfig, idx, d2_sel, mask, ordered: bool = False) -> Neighbours:
+def _pad_neighbours(config: HedgerConfig, idx, d2_sel, mask) -> Neighbours:
     """Pad to ``max_neighbours`` and put K in a canonical order (real neighbours by slot, then
     padding), so that every search method gives bit-identical fits (float32 sums depend on
     the order of their terms)."""
@@ -181,8 +170,7 @@ def _pad_neighbours(config: HedgerConfig, idx, d2_sel, mask, ordered: bool = Fal
         idx = jnp.concatenate([idx, jnp.zeros((pad,), idx.dtype)])
         d2_sel = jnp.concatenate([d2_sel, jnp.full((pad,), jnp.inf, d2_sel.dtype)])
         mask = jnp.concatenate([mask, jnp.zeros((pad,), bool)])
-    if not ordered:
-        idx, d2_sel, mask = canonical_order(idx, d2_sel, mask)
+    idx, d2_sel, mask = canonical_order(idx, d2_sel, mask)
     return Neighbours(indices=idx.astype(jnp.int32), sqdist=jnp.where(mask, d2_sel, 0.0),
                       mask=mask)
 
@@ -223,6 +211,10 @@ def add_scaled(config: HedgerConfig, memory: Memory, z: jax.Array, value: jax.Ar
 def add_points(config: HedgerConfig, memory: Memory, states: jax.Array, actions: jax.Array,
                values: jax.Array, params: Optional[HedgerParams] = None) -> Memory:
     """Store n points: states (n, S), actions (n, A), values (n,) -> memory. Jittable."""
+    n = jnp.shape(values)[0] if jnp.ndim(values) == 1 else -1
+    expect("states", states, (n, config.state_dim))
+    expect("actions", actions, (n, config.action_dim))
+    expect("values", values, (n,))
     zs = scale_inputs(config, states, actions, params)
 
     def body(mem, item):

@@ -182,8 +182,20 @@ def check_params(config: HedgerConfig, params: HedgerParams) -> HedgerParams:
 
 
 def resolve(config: HedgerConfig, params: Optional[HedgerParams]) -> HedgerParams:
-    """``params``, or the config's defaults as constants when None (see the module doc)."""
-    return HedgerParams.defaults(config) if params is None else params
+    """``params``, or the config's defaults as constants when None (see the module doc).
+    Given params are checked when traced: one setting (scalars, (d,) input scaling), else
+    ``InvalidInputError`` naming the field (a batch of settings is for ``vmap``)."""
+    if params is None:
+        return HedgerParams.defaults(config)
+    from hedger_jax.validation import InvalidInputError, expect
+
+    if not isinstance(params, HedgerParams):
+        raise InvalidInputError(f"params: expected a HedgerParams, got {type(params).__name__}")
+    for name in FIELDS:
+        shape = (config.dim,) if name in _VECTORS else ()
+        expect(f"params.{name}", getattr(params, name), shape,
+               "bool" if name in _BOOLS else "real")
+    return params
 
 
 def flag(value: Any, on: Any, off: Any):

@@ -8,6 +8,7 @@ import jax.numpy as jnp
 
 from hedger_jax.config import HedgerConfig
 from hedger_jax.params import HedgerParams, flag, resolve
+from hedger_jax.validation import expect
 from hedger_jax.lwr import kernel_weights, local_fit_columns
 from hedger_jax.memory import (Memory, Neighbours, scale_inputs, select_neighbours,
                                squared_distances)
@@ -65,8 +66,12 @@ def predict_detailed(config: HedgerConfig, memory: Memory, state: jax.Array,
                      action: jax.Array, params: Optional[HedgerParams] = None) -> Prediction:
     """Algorithm 1 for one query: state (S,), action (A,) -> ``Prediction``.
 
-    Vmap it over queries, candidate actions, memories (seeds) or params (settings).
+    Vmap it over queries, candidate actions, memories (seeds) or params (settings). Shapes
+    are checked when traced (``InvalidInputError`` naming the argument). A NaN or inf in
+    the query finds no neighbour: the prediction is "don't know" (``default_value``).
     """
+    expect("state", state, (config.state_dim,))
+    expect("action", action, (config.action_dim,))
     return predict_scaled(config, memory, scale_inputs(config, state, action, params), params)
 
 

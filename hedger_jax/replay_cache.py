@@ -117,13 +117,6 @@ REUSE_MIN_CAPACITY = 100_000
 APPENDED_WIDTH = 16
 
 
-#: Batches of at least this many queries search the first alone when only its set is missing
-#: (fewer: all of them). Measured (training paired, mountain car at 3e5 slots, 2-core Xeon,
-#: bit-identical): continuous (12 queries) 1.05x; discrete (4 queries) 1.005x, within noise,
-#: for ~5 s more compile.
-PARTIAL_MIN_QUERIES = 8
-
-
 def merge_appended(config: HedgerConfig, memory: Memory, z: jax.Array, cached: jax.Array,
                    window, d2w: jax.Array, near: jax.Array, k_thresh) -> Neighbours:
     """K of the scaled query z (d,) over the memory, from K over its first size0 slots
@@ -152,24 +145,13 @@ def merge_appended(config: HedgerConfig, memory: Memory, z: jax.Array, cached: j
     # then in canonical order.
     p = jnp.arange(d2.shape[-1], dtype=jnp.int32)
 
-    # The distances are >= 0 or +inf, so as int32 bits they order as the floats (+inf,
-    # 0x7F800000, the largest): the farthest is an integer maximum, without the NaN checks
-    # of XLA's float one, and the count of entries left is carried, not recounted (training
-    # 1.011x, continuous mountain car at 3e5 slots, paired, results identical).
-    inf_bits = 0x7F800000
+    def drop(_, d2):
+        far = jnp.max(jnp.where(d2 < jnp.inf, d2, -1.0))
+        last = jnp.max(jnp.where(d2 == far, p, -1))
+        over = jnp.sum((d2 < jnp.inf).astype(jnp.int32)) > k
+        return jnp.where(over & (p == last), jnp.inf, d2)
 
-    def drop(_, c):
-        bits, count = c
-        far = jnp.max(jnp.where(bits < inf_bits, bits, -1))
-        last = jnp.max(jnp.where(bits == far, p, -1))
-        over = count > k
-        return (jnp.where(over & (p == last), inf_bits, bits),
-                count - over.astype(jnp.int32))
-
-    count = jnp.sum((d2 < jnp.inf).astype(jnp.int32))
-    bits, _ = jax.lax.fori_loop(0, pos.shape[0], drop,
-                                (jax.lax.bitcast_convert_type(d2, jnp.int32), count))
-    d2 = jax.lax.bitcast_convert_type(bits, jnp.float32)
+    d2 = jax.lax.fori_loop(0, pos.shape[0], drop, d2)
     at = true_positions(d2 < jnp.inf, jnp.arange(k, dtype=jnp.int32))
     mask = at < d2.shape[-1]
     at = jnp.minimum(at, d2.shape[-1] - 1)
@@ -179,16 +161,11 @@ def merge_appended(config: HedgerConfig, memory: Memory, z: jax.Array, cached: j
 
 def cached_neighbours(config: HedgerConfig, memory: Memory, zs: jax.Array,
                       cached: Optional[tuple], search, k_thresh) -> Neighbours:
-    """K of each query zs (q, d): merged from ``cached`` = (sets (q, k), size0 (), ok (q,)
-    or () for all) of ``replay_sets``, width) where usable (width, a static int: the most
-    appended points looked at, e.g. the episode's length), else ``search(zs)``
-    (-> ``Neighbours``, leading q; also called with the first query alone, ``zs[:1]``).
-
-    Every set merged; or, when only the first query's cannot be (the replay's (s_t, a_t)
-    after a random exploratory action, ``replay_sets``) in a batch of at least
-    ``PARTIAL_MIN_QUERIES``, that one searched and the others merged; else every query
-    searched. Under ``vmap`` with members that disagree, every
-    member searches (same result)."""
+    """K of each query zs (q, d) within ``k_thresh``: merged from ``cached`` = (sets (q, k),
+    size0 (), ok (q,) or () for all) of ``replay_sets``, width) when every set is usable
+    (width, a static int: the most appended points looked at, e.g. the episode's length),
+    else ``search(zs)`` (-> ``Neighbours``, leading q) for all of them. Under ``vmap`` with
+    members that disagree, every member searches (same result)."""
     from hedger_jax.loops import batch_cond
 
     if cached is None or not usable(config):
@@ -201,20 +178,9 @@ def cached_neighbours(config: HedgerConfig, memory: Memory, zs: jax.Array,
     crowded = jnp.sum(near.astype(jnp.int32), axis=1) > APPENDED_WIDTH      # (q,)
     use = jnp.broadcast_to(jnp.asarray(ok, bool), zs.shape[:1]) & fits & ~crowded
 
-    def merged(part):
+    def merged(_):
         return jax.vmap(lambda z, c, d, m: merge_appended(config, memory, z, c, window, d, m,
-                                                          k_thresh))(
-            zs[part], sets[part], d2w[part], near[part])
+                                                          k_thresh))(zs, sets, d2w, near)
 
-    def first_searched(_):
-        return jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]),
-                                      search(zs[:1]), merged(slice(1, None)))
-
-    def rest(_):
-        return batch_cond(jnp.all(use[1:]), first_searched, lambda _: search(zs), None,
-                          equal=True)
-
-    if zs.shape[0] < PARTIAL_MIN_QUERIES:
-        rest = lambda _: search(zs)  # noqa: E731
-    return batch_cond(jnp.all(use), lambda _: merged(slice(None)), rest, None, equal=True)
+    return batch_cond(jnp.all(use), merged, lambda _: search(zs), None, equal=True)
 

@@ -8,8 +8,9 @@ import jax.numpy as jnp
 
 from hedger_jax.config import HedgerConfig
 from hedger_jax.params import HedgerParams, flag, resolve
+from hedger_jax.validation import expect_transition
 from hedger_jax.greedy import greedy_candidates, greedy_value_from
-from hedger_jax.memory import (FLAG_NONFINITE, Memory, add_scaled, map_queries, scale_inputs,
+from hedger_jax.memory import (FLAG_NONFINITE, Memory, add_scaled, scale_inputs,
                                select_neighbours)
 from hedger_jax.prediction import predict_from_neighbours, predict_scaled
 from hedger_jax.replay_cache import cached_neighbours
@@ -76,6 +77,7 @@ def train_step(config: HedgerConfig, memory: Memory, transition: Transition, cac
     Algorithm 2 updates "each point in K"). An invalid transition changes nothing.
     """
     t = transition
+    expect_transition(config, t, ())
     p = resolve(config, params)
     valid = jnp.asarray(t.valid, bool)
     z = scale_inputs(config, t.obs, t.action, params)
@@ -90,8 +92,8 @@ def train_step(config: HedgerConfig, memory: Memory, transition: Transition, cac
     if cached is None:
         batch = jax.vmap(lambda zz: predict_scaled(config, memory, zz, params))(zs)
     else:
-        nb = cached_neighbours(config, memory, zs, cached, lambda q: map_queries(
-            config, lambda zz: select_neighbours(config, memory, zz, params), q), p.k_thresh)
+        nb = cached_neighbours(config, memory, zs, cached, jax.vmap(
+            lambda zz: select_neighbours(config, memory, zz, params)), p.k_thresh)
         batch = jax.vmap(lambda zz, n: predict_from_neighbours(config, memory, zz, n, params))(
             zs, nb)
     pred = jax.tree_util.tree_map(lambda x: x[0], batch)
@@ -118,6 +120,8 @@ def train_episode(config: HedgerConfig, memory: Memory, episode: Transition,
     episode: ``Transition`` with leading axis T (padded steps have valid=False and change
     nothing). Returns (memory, TrainInfo with leading axis T, in the episode's time order).
     """
+
+    expect_transition(config, episode, jnp.shape(episode.reward)[:1], "episode")
 
     def body(mem, t):
         return train_step(config, mem, t, params=params)

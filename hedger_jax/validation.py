@@ -243,3 +243,53 @@ def config_differences(a: Any, b: Any) -> list:
     if type(a) is not type(b):
         return [f"<type: {type(a).__name__} vs {type(b).__name__}>"]
     return [f.name for f in dataclasses.fields(a) if getattr(a, f.name) != getattr(b, f.name)]
+
+
+# ------------------------------------------------------------------------------------------
+# Trace-time checks: shapes and dtypes are static, so the functional API checks them while it
+# is traced (inside jit and vmap too), before any value exists.
+# ------------------------------------------------------------------------------------------
+def expect(name: str, x: Any, shape: Tuple[int, ...], kind: str = "real") -> None:
+    """Raise :class:`InvalidInputError` unless ``x`` (an array or tracer) has ``shape`` and a
+    dtype of ``kind``: "real" (integer or floating, not bool), "bool" (bool or integer)."""
+    import jax.numpy as jnp
+
+    got = tuple(jnp.shape(x))
+    if got != tuple(shape):
+        raise InvalidInputError(f"{name}: expected shape {tuple(shape)}, got {got}")
+    dtype = jnp.result_type(x)
+    integer = jnp.issubdtype(dtype, jnp.integer)
+    ok = (integer or jnp.issubdtype(dtype, jnp.floating)) if kind == "real" else \
+        (dtype == jnp.bool_ or integer)
+    if not ok or (kind == "real" and dtype == jnp.bool_):
+        want = "a real number dtype" if kind == "real" else "bool"
+        raise InvalidInputError(f"{name}: expected {want}, got dtype {dtype}")
+
+
+def expect_key(name: str, key: Any) -> None:
+    """A PRNG key: a typed key of shape (), or raw uint32 (2,)."""
+    import jax
+    import jax.numpy as jnp
+
+    dtype = jnp.result_type(key)
+    if jax.dtypes.issubdtype(dtype, jax.dtypes.prng_key):
+        if jnp.shape(key) != ():
+            raise InvalidInputError(f"{name}: expected one PRNG key, got shape {jnp.shape(key)}")
+        return
+    if tuple(jnp.shape(key)) != (2,) or dtype != jnp.uint32:
+        raise InvalidInputError(f"{name}: expected a PRNG key (jax.random.PRNGKey(seed): uint32 "
+                                f"(2,)), got shape {tuple(jnp.shape(key))} dtype {dtype}")
+
+
+def expect_transition(config: HedgerConfig, t: Any, lead: Tuple[int, ...] = (),
+                      name: str = "transition") -> None:
+    """A ``Transition`` with leading axes ``lead``: obs/next_obs (S,), action (A,), reward,
+    terminated and valid () each after them."""
+    import jax.numpy as jnp
+
+    lead = tuple(lead) if lead else tuple(jnp.shape(t.reward))
+    S, A = config.state_dim, config.action_dim
+    for field, shape, kind in (("obs", (S,), "real"), ("action", (A,), "real"),
+                               ("reward", (), "real"), ("next_obs", (S,), "real"),
+                               ("terminated", (), "bool"), ("valid", (), "bool")):
+        expect(f"{name}.{field}", getattr(t, field), lead + shape, kind)

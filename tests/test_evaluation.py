@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 
 from envs.mountain_car import MountainCar
-from hedger_jax import rng
 from hedger_jax.agent import evaluate_policy
 
 ENV = MountainCar(continuous=False)
@@ -17,7 +16,7 @@ N, MAX_STEPS = 23, 110
 def _noisy_pump(obs, key):
     """Pump with the velocity, but a random push a third of the time (uses the key, so the
     episodes' lengths vary and some reach MAX_STEPS)."""
-    u = rng.uniform(key, 2)
+    u = jax.random.uniform(key, (2,))
     pump = jnp.where(obs[1] >= 0.0, 1.0, -1.0)
     return jnp.where(u[0] < 0.35, jnp.where(u[1] < 0.5, -1.0, 1.0), pump)[None]
 
@@ -31,8 +30,8 @@ def _one_at_a_time(key, n, max_steps):
 
     @jax.jit
     def step(state, obs, k):
-        action = _noisy_pump(obs, rng.fold_in(k, 0))
-        return ENV.step(rng.fold_in(k, 1), state, action, PARAMS)
+        action = _noisy_pump(obs, jax.random.fold_in(k, 0))
+        return ENV.step(jax.random.fold_in(k, 1), state, action, PARAMS)
 
     steps, success = [], []
     for i in range(n):
@@ -40,7 +39,7 @@ def _one_at_a_time(key, n, max_steps):
         obs = ENV.get_obs(state)
         reached = False
         for t in range(max_steps):
-            obs, state, _, term, trunc, info = step(state, obs, rng.fold_in(keys[i], t))
+            obs, state, _, term, trunc, info = step(state, obs, jax.random.fold_in(keys[i], t))
             reached = reached or bool(info["reached_goal"] if "reached_goal" in info else term)
             if bool(term) or bool(trunc):
                 break

@@ -235,10 +235,12 @@ def test_search_1d_same_answer_as_the_plain_loop_with_fewer_evaluations(fn):
                                                with_count=True)))(params)
     want = jax.jit(jax.vmap(lambda p: _plain_search(lambda x: fn(x, p), -1.0, 1.0, 11, 8,
                                                     1e-3)))(params)
-    # Best x and any known bit for bit; its value to rounding: XLA's CPU compiler may contract
-    # f's multiply-add (edge: 3 p x - x^2) into an FMA in one program and not in the other.
-    for a, b in zip((got[0], got[2]), (want[0], want[2])):
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    # "Any known" bit for bit; the best x and its value to rounding: XLA's CPU compiler may
+    # contract f's multiply-add (edge: 3 p x - x^2) into an FMA in one program (the grid's
+    # samples are evaluated as one vmapped batch) and not in the other, and a parabola's
+    # vertex moves with its samples' last bits.
+    np.testing.assert_array_equal(np.asarray(got[2]), np.asarray(want[2]))
+    np.testing.assert_allclose(np.asarray(got[0]), np.asarray(want[0]), rtol=0, atol=2e-6)
     np.testing.assert_allclose(np.asarray(got[1]), np.asarray(want[1]), rtol=1e-6, atol=1e-7)
     ours, plain = np.asarray(got[3]), np.asarray(want[3])
     assert np.all(ours <= plain) and np.all(ours <= 8)
@@ -370,7 +372,6 @@ def test_explore_action_is_random_with_probability_epsilon_else_greedy(continuou
     """explore_action (random exploration) skips the greedy search on exploratory steps; its
     action is still, key by key, the random action when the coin u[0] < epsilon and the
     greedy action otherwise, from the same single draw (jitted and vmapped over keys)."""
-    from hedger_jax import rng
     from hedger_jax.agent import RunConfig, _random_action_from_uniform, explore_action
     from hedger_jax.greedy import greedy_action_from_uniform, greedy_draws
 
@@ -386,7 +387,7 @@ def test_explore_action_is_random_with_probability_epsilon_else_greedy(continuou
     n_g = greedy_draws(cfg)
 
     def reference(key):
-        u = rng.uniform(key, 1 + n_g + 1)
+        u = jax.random.uniform(key, (1 + n_g + 1,))
         greedy = greedy_action_from_uniform(cfg, mem, obs, u[1:1 + n_g])[0]
         return u[0] < run.epsilon, jnp.where(u[0] < run.epsilon,
                                              _random_action_from_uniform(cfg, u[1 + n_g:]),

@@ -78,6 +78,12 @@ def _assert_same(cfg_b, m_b, cfg_g, m_g, queries, canonical=False):
     return a
 
 
+def _chosen(geo, index, first, last, live, k, k_thresh):
+    """(level, its table segment lengths (R,)) a query searches first (``level_segments``)."""
+    _, lv, _, length = gi.level_segments(geo, index, first, last, live, k, k_thresh)
+    return lv, length[lv]
+
+
 def _pair(**kw):
     return _cfg("brute", **kw), _cfg("grid", **kw)
 
@@ -197,7 +203,7 @@ def test_scan_rest_runs_for_the_queries_with_more_candidates_only(levels):
     @jax.vmap
     def candidates(z):
         first, last, live = gi.level_rows(geo, z)
-        return jnp.sum(gi._choose_level(geo, mg.index, first, last, live, 8)[2])
+        return jnp.sum(_chosen(geo, mg.index, first, last, live, 8, cg.k_thresh)[1])
 
     n_cand = np.asarray(candidates(jnp.asarray(queries)))
     more = n_cand > gi.first_trips(cg) * cg.index_chunk
@@ -238,75 +244,6 @@ def test_one_level_appends_over_several_odd_chunks_match_brute():
     assert (counts > 2 * 5).sum() > 10 and (counts < 16).sum() > 60   # most fit in k   # several trips, no overflow
 
 
-
-def test_direct_step_only_where_a_full_uniform_memory_mostly_fits_it():
-    """``index.direct_width``: for a one-level grid whose full uniform memory puts ~90 % of
-    queries' candidates within k (m + 1.28 sqrt(m) <= k), a multiple of 8 that ~99 % of
-    uniform queries' candidates fit, at most min(chunk, k) (exactly that with the config's
-    ``index_chunk``); else 0 (denser memories, several levels)."""
-    rng = np.random.default_rng(21)
-    for cap, k in ((100, 32), (200, 32), (400, 32), (400, 16)):
-        sparse = _cfg("grid", capacity=cap, index_levels=1, max_neighbours=k)
-        width = gi.direct_width(sparse)
-        assert 0 < width <= min(gi.chunk_width(sparse), k) and width % 8 == 0
-        geo, mg = gi.geometry(sparse), _memory(sparse, _uniform(rng, cap))
-
-        @jax.jit
-        @jax.vmap
-        def count(z):
-            first, last, live = gi.level_rows(geo, z)
-            return gi._choose_level(geo, mg.index, first, last, live, k)[2].sum()
-
-        counts = np.asarray(count(jnp.asarray(_uniform(rng, 4096))))
-        # (99 % for Poisson counts; a query's rows vary in extent, so the counts spread more)
-        assert np.mean(counts <= width) >= 0.95, (cap, width, np.bincount(counts))
-    narrow = _cfg("grid", capacity=100, index_levels=1, max_neighbours=32)
-    assert gi.direct_width(narrow) == 8 < min(gi.chunk_width(narrow), 32)
-    assert gi.direct_width(_cfg("grid", capacity=400, index_levels=1, index_chunk=8)) == 8
-    assert gi.direct_width(_cfg("grid", capacity=400, index_levels=1, index_chunk=24)) == 16
-    for dense in (_cfg("grid", capacity=2000, index_levels=1), _cfg("grid", capacity=200_000)):
-        assert gi.direct_width(dense) == 0
-
-@pytest.mark.parametrize("chunk, k, orders", [(24, 16, False), (16, 24, True)])
-def test_one_level_direct_step_and_loop_agree_in_one_batch(chunk, k, orders):
-    """One level: a query whose candidates fit one step of min(chunk, k) takes them as they
-    are (no selection); the others (here a dense cluster) go through the scan loop, 16 at a
-    time under vmap. A mixed batch, vmapped and one by one, gives exactly the brute-force
-    sets and the same arrays both ways, in canonical order -- put there by the caller, or,
-    with a step narrower than k (``select_orders``), by each branch of the search."""
-    rng = np.random.default_rng(14)
-    cb, cg = _pair(capacity=400, index_chunk=chunk, max_neighbours=k, index_levels=1)
-    assert gi.direct_width(cg) == 16                      # min(chunk, k)
-    assert gi.select_orders(cg) == orders
-    geo = gi.geometry(cg)
-    centres = _uniform(rng, 2)
-    cluster = np.concatenate([centres[0] + rng.normal(0, 0.01, (50, 3)),      # dense
-                              centres[1] + rng.normal(0, 0.1, (80, 3))]).astype(np.float32)
-    cluster[:, 2] = np.round(cluster[:, 2])
-    pts = np.concatenate([cluster, _uniform(rng, 240)])
-    queries = np.concatenate([cluster[::2] + 0.001, _uniform(rng, 60), pts[-20:]])
-    mb, mg = _memory(cb, pts), _memory(cg, pts)
-
-    @jax.jit
-    @jax.vmap
-    def candidates(z):
-        first, last, live = gi.level_rows(geo, z)
-        return jnp.sum(gi._choose_level(geo, mg.index, first, last, live, k)[2])
-
-    n_cand = np.asarray(candidates(jnp.asarray(queries)))
-    direct = n_cand <= 16
-    assert 20 < direct.sum() < len(queries) - 20          # both paths, each for many queries
-    assert ((n_cand > 16) & (n_cand <= 24)).sum() >= 3    # some just past the direct step
-    a = _assert_same(cb, mb, cg, mg, queries, canonical=True)
-    assert a.mask.sum(1)[~direct].max() > 16 - (k == 16) and a.mask.sum(1)[direct].max() > 0
-    one = jax.jit(lambda z: select_neighbours(cg, mg, z))
-    batched = jax.device_get(_select_fn(cg)(mg, jnp.asarray(queries)))
-    for i, z in enumerate(queries):
-        single = one(jnp.asarray(z))
-        np.testing.assert_array_equal(np.asarray(single.indices), batched.indices[i])
-        np.testing.assert_array_equal(np.asarray(single.sqdist), batched.sqdist[i])
-        np.testing.assert_array_equal(np.asarray(single.mask), batched.mask[i])
-
 def _segment_inputs(rng, n_rows, recent, offset=0):
     """A random candidate sequence of n_rows table+recent segments plus the later-writes
     segment (some parts empty), as ``index._scan`` lays it out: (table (n_rows + 1, 4),
@@ -335,16 +272,15 @@ def _segment_inputs(rng, n_rows, recent, offset=0):
 
 @pytest.mark.parametrize("batch", [None, 3, 12, 16, 300])
 def test_candidate_columns_match_the_expanded_segments(batch):
-    """Both ways of mapping a candidate position to its (column, table part) -- the binary
-    search and the compare-and-count, and the dispatcher that picks one by the number of
-    vmapped queries -- against the segments written out one position at a time (empty table,
-    recent and whole segments)."""
+    """Mapping a candidate position to its (column, table part), alone and vmapped, against
+    the segments written out one position at a time (empty table, recent and whole
+    segments)."""
     rng = np.random.default_rng(21)
     n = 1 if batch is None else batch
     cases = [_segment_inputs(rng, 9, 64) for _ in range(n)]
     width = 16
     p = np.arange(width, dtype=np.int32) + 3
-    for impl in (gi._columns_by_search, gi._columns_by_count, gi._candidate_columns):
+    for impl in (gi._candidate_columns,):
         args = [np.stack([c[0][i] for c in cases]) for i in range(3)]
         if batch is None:
             col, tab = jax.jit(impl)(jnp.asarray(p), *(jnp.asarray(a[0]) for a in args))
@@ -424,7 +360,7 @@ def test_chunk_width_fits_a_full_uniform_memory_and_stays_exact_beyond():
         @jax.vmap
         def count(z):
             first, last, live = gi.level_rows(geo, z)
-            return gi._choose_level(geo, mg.index, first, last, live, cg.max_neighbours)[2].sum()
+            return _chosen(geo, mg.index, first, last, live, cg.max_neighbours, cg.k_thresh)[1].sum()
 
         counts = np.asarray(count(jnp.asarray(_uniform(rng, 4096))))
         assert counts.max() <= width < 2 * counts.max()
@@ -576,17 +512,6 @@ def test_incremental_writes_ring_buffer_wraps_and_saturates():
     assert int(mg.size) == 300
 
 
-def test_ring_buffer_saturated_where_the_search_orders_k_itself():
-    """The same ring buffer with a one-level direct step narrower than k, where the search
-    puts K in canonical order in each branch (``select_orders``): the direct step, the scan
-    loop, and brute force over every slot once more writes than slots wait for a merge."""
-    blocks = [150, 400, 30, 700, 5]
-    kw = dict(max_neighbours=24, index_chunk=16, index_levels=1, bandwidth=0.05)
-    assert gi.select_orders(_cfg("grid", capacity=300, full_policy="overwrite_oldest", **kw))
-    mg = _run_writes("overwrite_oldest", 300, sum(blocks), blocks, seed=6, **kw)
-    assert int(mg.size) == 300
-
-
 def test_predictions_and_training_match_brute():
     rng = np.random.default_rng(5)
     cb, cg = _pair(max_neighbours=16, bandwidth=0.06)
@@ -680,7 +605,9 @@ def test_multi_level_dense_and_sparse_queries_match_brute():
     @jax.vmap
     def levels(z):      # the level a query is answered at, and whether it is accepted there
         first, last, live = gi.level_rows(geo, z)
-        lv, s0, ln = gi._choose_level(geo, mg.index, first, last, live, cg.max_neighbours)
+        _, lv, s0, ln = gi.level_segments(geo, mg.index, first, last, live,
+                                          cg.max_neighbours, cg.k_thresh)
+        s0, ln = s0[lv], ln[lv]
         rec = jnp.zeros_like(s0)
         _, d2 = gi._scan(cg, geo, mg.index, mg.head, z, lv, s0, ln, rec, rec)
         return lv, (lv == 0) | jnp.isfinite(d2[-1])
@@ -839,8 +766,7 @@ def test_level_target_grows_with_the_uniform_dimensions():
 
 def test_continuous_levels_small_batches_of_candidate_actions_match_brute():
     """Three uniform dimensions (continuous actions) with several levels, queried as the
-    greedy search does: 11 candidate actions per state, vmapped (batches smaller than the
-    rescan/scan groups run in groups of 4, ``loops._SMALL_GROUP``), on uniform points plus a
+    greedy search does: 11 candidate actions per state, vmapped, on uniform points plus a
     dense cluster. Some queries choose a finer level whose k nearest are not all within its
     radius (searched again at level 0); every set is exactly brute force's."""
     rng = np.random.default_rng(5)
@@ -861,7 +787,7 @@ def test_continuous_levels_small_batches_of_candidate_actions_match_brute():
     @jax.vmap
     def level(z):
         first, last, live = gi.level_rows(geo, z)
-        return gi._choose_level(geo, mg.index, first, last, live, 8)[0]
+        return _chosen(geo, mg.index, first, last, live, 8, cg.k_thresh)[0]
 
     lv = np.asarray(level(jnp.asarray(q)))
     radius = np.array([x.radius for x in geo.levels])[lv]
@@ -1048,3 +974,40 @@ def test_one_query_at_a_time_matches_the_batch_and_brute(policy, full):
     for a, b in zip(alone, batch):
         np.testing.assert_array_equal(a, b)
     _assert_same(cb, mb, cg, mg, q)
+
+
+@pytest.mark.parametrize("capacity", [3000, 60_000])
+def test_a_traced_radius_below_the_bound_gives_brute_forces_sets(capacity):
+    """With ``max_bandwidth`` above ``bandwidth`` the index keeps a level for every radius
+    between them; a query with a traced k_thresh in that range is answered from the finest
+    level that covers it (or a finer one whose rows hold enough points): exactly brute
+    force's K at that radius, for radii at, between and above the levels'."""
+    from hedger_jax.params import HedgerParams
+
+    rng = np.random.default_rng(31)
+    cb, cg = _pair(capacity=capacity, bandwidth=0.01, max_bandwidth=0.08, max_neighbours=16)
+    geo = gi.geometry(cg)
+    radii = [lv.radius for lv in geo.levels]
+    assert radii[0] == pytest.approx(cg.max_k_thresh)
+    assert min(radii) <= cg.k_thresh * (1 + 1e-9) and len(radii) >= 6
+    n = capacity // 2
+    pts = _uniform(rng, n)
+    pts[: n // 4, :2] = 0.3 + 0.02 * rng.standard_normal((n // 4, 2))     # a dense cluster
+    mb, mg = _memory(cb, pts), _memory(cg, pts)
+    queries = jnp.asarray(np.concatenate([_uniform(rng, 40), pts[:20] + 0.001]))
+    def sel(cfg):
+        return jax.jit(jax.vmap(lambda m, z, p: select_neighbours(cfg, m, z, p),
+                                in_axes=(None, 0, None)))
+
+    sel_b, sel_g = sel(cb), sel(cg)
+    for h in (0.01, 0.013, 0.02, 0.0317, 0.05, 0.08):
+        params = HedgerParams.create(cg, bandwidth=h)
+        a = jax.device_get(sel_b(mb, queries, params))
+        b = jax.device_get(sel_g(mg, queries, params))
+        for i in range(queries.shape[0]):
+            da, db = np.sort(a.sqdist[i][a.mask[i]]), np.sort(b.sqdist[i][b.mask[i]])
+            np.testing.assert_array_equal(da, db, err_msg=f"h={h} query {i}")
+        assert np.asarray(a.mask).sum() > 0
+    assert int(gi.covering_level(geo, jnp.float32(radii[-1]))) == len(radii) - 1
+    assert int(gi.covering_level(geo, jnp.float32(radii[0]))) == 0
+    assert int(gi.covering_level(geo, jnp.float32(radii[2] * 0.99))) == 2
