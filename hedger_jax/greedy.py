@@ -127,7 +127,9 @@ def search_1d(f: Callable[[jax.Array], Tuple[jax.Array, ...]], low: float, high:
         g = f
         f = lambda x: tuple(g(x)) + (None,)  # noqa: E731
     if initial is None:
-        f0, k0, aux0 = jax.vmap(f)(grid)
+        # One sample after another: a query searched alone reads its first scan trip by
+        # contiguous windows (``index._first_trip``), which a vmapped batch cannot.
+        f0, k0, aux0 = jax.lax.map(f, grid)
     else:
         f0, k0 = initial[0], initial[1]
         aux0 = initial[2] if len(initial) > 2 else None

@@ -113,7 +113,7 @@ def _loop(fn: Callable) -> Callable:
 
 
 def batch_cond(pred: jax.Array, true_fn: Callable[[Any], Any], false_fn: Callable[[Any], Any],
-               operand: Any, *, equal: bool = False) -> Any:
+               operand: Any, *, compact: int = 0, equal: bool = False) -> Any:
     """``lax.cond(pred, true_fn, false_fn, operand)`` that stays cheap under ``vmap``.
 
     ``lax.cond`` with a batched predicate runs both branches for every member and selects,
@@ -122,12 +122,19 @@ def batch_cond(pred: jax.Array, true_fn: Callable[[Any], Any], false_fn: Callabl
     expensive branch such as merging a memory's neighbour index. Per-member results are
     exactly those of ``lax.cond``.
 
+    compact (static int): 0 -- the true branch, when it runs, runs for every member (then
+    selected per member). G > 0 -- only the members whose predicate holds run it, G at a time
+    (gathered into groups of G, results scattered back): for a branch that few members of a
+    large batch need, e.g. one query of 4096 that must be searched again. A batch of at most
+    G members uses groups of min(G, 4) (``_SMALL_GROUP``); one of at most 4 runs whole.
+
     equal (static bool): the branches give the same results (the true one is a shortcut),
     so under ``vmap`` with a batched predicate only the false branch runs, for every member.
     """
     tfn, tconsts = _hoist_branch(true_fn, operand)
     ffn, fconsts = _hoist_branch(false_fn, operand)
-    return _cond(tfn, ffn, bool(equal))(jnp.asarray(pred, bool), operand, tconsts, fconsts)
+    return _cond(tfn, ffn, int(compact), bool(equal))(jnp.asarray(pred, bool), operand,
+                                                       tconsts, fconsts)
 
 
 def _hoist_branch(fn: Callable, operand: Any):
@@ -152,7 +159,38 @@ def _hoist_branch(fn: Callable, operand: Any):
     return g, list(closed.consts)
 
 
-def _cond(tfn: Callable, ffn: Callable, equal: bool = False) -> Callable:
+def _compacted(axis_size: int, group: int, pred, operand, vt, tconsts, tc_b, falses):
+    """The true branch for the members where ``pred`` (axis_size,) holds, ``group`` at a time,
+    written over ``falses`` (the false branch's results for every member)."""
+    n_pad = -(-axis_size // group) * group
+    lanes = jnp.arange(axis_size, dtype=jnp.int32)
+    # ids[j]: the j-th member whose predicate holds; axis_size (dropped on write) beyond them.
+    slot = jnp.where(pred, jnp.cumsum(pred.astype(jnp.int32)) - 1, n_pad)
+    ids = jnp.full((n_pad,), axis_size, jnp.int32).at[slot].set(lanes, mode="drop")
+    n_groups = (jnp.sum(pred.astype(jnp.int32)) + group - 1) // group
+
+    def body(g, out):
+        sel = jax.lax.dynamic_slice(ids, (g * group,), (group,))
+        take = jnp.minimum(sel, axis_size - 1)               # padding: any member, dropped
+        op_g = jax.tree_util.tree_map(lambda x: x[take], operand)
+        tc_g = [c[take] if b else c for c, b in zip(tconsts, tc_b)]
+        res = vt(op_g, *tc_g)
+        return jax.tree_util.tree_map(lambda o, r: o.at[sel].set(r, mode="drop"), out, res)
+
+    return jax.lax.fori_loop(0, n_groups, body, falses)
+
+
+#: Group size of ``batch_cond(..., compact=G)`` for a batch no larger than G: groups of
+#: ``min(G, _SMALL_GROUP)`` when the batch is larger than that, else (a batch of at most 4)
+#: every member runs the branch when one needs it. Measured (grid index, 3e5 slots, continuous
+#: mountain car: batches of 11-12 candidate actions, of which a few go on scanning or are
+#: rescanned): groups of 4 / 2 / 1 made training 1.33 / 1.23 / 1.37x faster than running the
+#: whole batch (same level target); for discrete actions (batches of 3-4) groups of 1 were
+#: 0.90x at 3e5 and 1.02x at 2e4, so batches of at most 4 are left whole.
+_SMALL_GROUP = 4
+
+
+def _cond(tfn: Callable, ffn: Callable, compact: int = 0, equal: bool = False) -> Callable:
     @custom_vmap
     def cond(pred, operand, tconsts, fconsts):
         return jax.lax.cond(pred, lambda o: tfn(o, *tconsts), lambda o: ffn(o, *fconsts),
@@ -173,6 +211,14 @@ def _cond(tfn: Callable, ffn: Callable, equal: bool = False) -> Callable:
         if equal:
             out = jax.vmap(ffn, in_axes=(0, *[0 if b else None for b in fc_b]),
                            axis_size=axis_size)(operand, *fconsts)
+            return out, jax.tree_util.tree_map(lambda _: True, out)
+
+        group = compact if axis_size > compact else min(compact, _SMALL_GROUP)
+        if compact and axis_size > group:
+            # (A loop of zero trips when no member needs the branch; under an outer vmap the
+            # trip count is batched like any loop's.)
+            out = _compacted(axis_size, group, pred, operand, vt, tconsts, tc_b,
+                             vf(operand, *fconsts))
             return out, jax.tree_util.tree_map(lambda _: True, out)
 
         def some(o):

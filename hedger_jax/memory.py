@@ -211,7 +211,7 @@ def add_scaled(config: HedgerConfig, memory: Memory, z: jax.Array, value: jax.Ar
 def add_points(config: HedgerConfig, memory: Memory, states: jax.Array, actions: jax.Array,
                values: jax.Array, params: Optional[HedgerParams] = None) -> Memory:
     """Store n points: states (n, S), actions (n, A), values (n,) -> memory. Jittable."""
-    n = jnp.shape(values)[0] if jnp.ndim(values) == 1 else -1
+    n = jnp.shape(states)[0] if jnp.ndim(states) == 2 else -1
     expect("states", states, (n, config.state_dim))
     expect("actions", actions, (n, config.action_dim))
     expect("values", values, (n,))

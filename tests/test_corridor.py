@@ -2,9 +2,8 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pytest
 
-from envs.corridor import (EVAL_STARTS, Corridor, CorridorParams, evaluate_controller,
+from envs.corridor import (EVAL_STARTS, Corridor, evaluate_controller,
                            geometric_obs, laser_obs, make_state, straight_line_lower_bound)
 from envs.corridor_controllers import (BEST_CONTROLLER_PARAMS, best_policy,
                                        find_best_controller, hand_coded_demonstrations,

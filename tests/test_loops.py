@@ -112,3 +112,86 @@ def test_batch_cond_runs_the_true_branch_only_when_some_member_needs_it():
     assert counter["n"] == 0
     np.testing.assert_array_equal(g(jnp.array([False, True, False]), xs), [0.0, 101.0, 2.0])
     assert counter["n"] == 1
+
+
+def _branch_compact(p, x, y):
+    return batch_cond(p, lambda v: v * y + TABLE[:3], lambda v: v - y, x, compact=4)
+
+
+def _dyadic(rng, size):
+    """float32 multiples of 1/8 in [-4, 4): x * y + TABLE is exact in float32, so a fused
+    multiply-add (which XLA's CPU code may use in one program and not in another, e.g. on
+    AVX-512 machines) rounds the same as a multiply then an add."""
+    return (rng.integers(-32, 32, size=size) / 8.0).astype(np.float32)
+
+
+def test_batch_cond_compact_matches_lax_cond_per_member():
+    """compact=G: the members that need the true branch run it G at a time; every member's
+    result is still lax.cond's (batch sizes not a multiple of G, none / one / all true,
+    batched and unbatched closed-over values, nested vmap)."""
+    rng = np.random.default_rng(0)
+    f = jax.jit(jax.vmap(_branch_compact))
+    for n, n_true in ((11, 0), (11, 1), (11, 5), (11, 11), (3, 2), (4, 4)):
+        ps = np.zeros(n, bool)
+        ps[rng.choice(n, n_true, replace=False)] = True
+        xs = _dyadic(rng, (n, 3))
+        ys = _dyadic(rng, n)
+        want = np.stack([_branch_ref(bool(p), x, y) for p, x, y in zip(ps, xs, ys)])
+        np.testing.assert_array_equal(f(jnp.asarray(ps), jnp.asarray(xs), jnp.asarray(ys)), want)
+        # unbatched operand and closed-over y
+        got = jax.vmap(_branch_compact, (0, None, None))(jnp.asarray(ps), jnp.asarray(xs[0]), 2.0)
+        np.testing.assert_array_equal(got, [_branch_ref(bool(p), xs[0], 2.0) for p in ps])
+    ps = jnp.asarray(rng.uniform(size=(3, 9)) < 0.3)
+    xs = jnp.asarray(_dyadic(rng, (3, 9, 3)))
+    ys = jnp.asarray(_dyadic(rng, 3))
+    nested = jax.jit(jax.vmap(jax.vmap(_branch_compact, (0, 0, None))))(ps, xs, ys)
+    want = np.stack([[_branch_ref(bool(ps[i, j]), xs[i, j], ys[i]) for j in range(9)]
+                     for i in range(3)])
+    np.testing.assert_array_equal(nested, want)
+
+
+def test_batch_cond_compact_runs_the_branch_for_the_needing_members_only():
+    seen = []
+
+    def counting(v):                      # records how many members each call carries
+        def cb(a):
+            seen.append(np.asarray(a).shape[0])
+            return np.asarray(a) + 100.0
+        return jax.pure_callback(cb, jax.ShapeDtypeStruct(v.shape, v.dtype), v,
+                                 vmap_method="expand_dims")
+
+    g = jax.jit(jax.vmap(lambda p, x: batch_cond(p, counting, lambda v: v, x, compact=4)))
+    xs = jnp.arange(10.0)
+    np.testing.assert_array_equal(g(jnp.zeros(10, bool), xs), xs)
+    assert seen == []
+    p = np.zeros(10, bool)
+    p[[2, 7]] = True
+    np.testing.assert_array_equal(g(jnp.asarray(p), xs), np.where(p, xs + 100.0, xs))
+    assert seen == [4]                    # one group of 4 (2 members + padding), not 10
+    seen.clear()
+    p[[0, 1, 3, 9]] = True                # 6 members: two groups
+    np.testing.assert_array_equal(g(jnp.asarray(p), xs), np.where(p, xs + 100.0, xs))
+    assert seen == [4, 4]
+
+
+def test_batch_cond_compact_small_batches_run_in_groups_of_four():
+    """A batch no larger than G (e.g. 11 candidate actions, G = 16) runs the needing members
+    in groups of min(G, 4); a batch of at most 4 runs whole (one call for every member)."""
+    seen = []
+
+    def counting(v):
+        def cb(a):
+            seen.append(np.asarray(a).shape[0])
+            return np.asarray(a) + 100.0
+        return jax.pure_callback(cb, jax.ShapeDtypeStruct(v.shape, v.dtype), v,
+                                 vmap_method="expand_dims")
+
+    g = jax.jit(jax.vmap(lambda p, x: batch_cond(p, counting, lambda v: v, x, compact=16)))
+    for n, members, calls in ((11, [], []), (11, [3], [4]), (11, [0, 5, 9, 10, 2], [4, 4]),
+                              (4, [1], [4]), (3, [0, 2], [3]), (3, [], [])):
+        seen.clear()
+        p = np.zeros(n, bool)
+        p[members] = True
+        xs = jnp.arange(float(n))
+        np.testing.assert_array_equal(g(jnp.asarray(p), xs), np.where(p, xs + 100.0, xs))
+        assert seen == calls, (n, members, seen)

@@ -1,12 +1,10 @@
 """Property tests (hypothesis) of the numerics: IVH affine invariance, a stored point inside its
 own hull, finite predictions for any memory contents, and region updates staying between the
 old value and the target. Bounded examples, no deadline (the first example compiles)."""
-import functools
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pytest
 from hypothesis import HealthCheck, assume, example, given, settings
 from hypothesis import strategies as st
 

@@ -223,3 +223,65 @@ def test_finite_step_is_clean_and_full_flag():
     np.testing.assert_array_equal(np.asarray(mem.points), points)
     with pytest.raises(MemoryFullError, match=r"the HEDGER memory is full \(capacity 4\)"):
         memory_check(mem)
+
+
+# ------------------------------------------------------------------ trace-time checks
+def test_the_functional_api_checks_shapes_when_traced():
+    """Wrong shapes or dtypes raise InvalidInputError naming the argument and the expected
+    shape while the function is traced: with and without jit, and under vmap."""
+    import jax
+    import jax.numpy as jnp
+
+    from hedger_jax import (HedgerParams, Transition, add_points, greedy_action, init_memory,
+                            predict, train_step)
+    from hedger_jax.validation import InvalidInputError
+
+    cfg = HedgerConfig(2, 1, capacity=64, discrete_actions=((-1.0,), (0.0,), (1.0,)))
+    mem = init_memory(cfg)
+    s, a = jnp.zeros(2), jnp.zeros(1)
+    for fn in (lambda *x: predict(cfg, mem, *x), jax.jit(lambda *x: predict(cfg, mem, *x))):
+        with pytest.raises(InvalidInputError, match=r"state: expected shape \(2,\), got \(3,\)"):
+            fn(jnp.zeros(3), a)
+        with pytest.raises(InvalidInputError, match=r"action: expected shape \(1,\)"):
+            fn(s, jnp.zeros(()))
+        with pytest.raises(InvalidInputError, match="action: expected a real number dtype"):
+            fn(s, jnp.zeros(1, bool))
+    with pytest.raises(InvalidInputError, match=r"state: expected shape \(2,\), got \(5, 2\)"):
+        jax.vmap(lambda x: predict(cfg, mem, x, a))(jnp.zeros((4, 5, 2)))
+    with pytest.raises(InvalidInputError, match="key: expected a PRNG key"):
+        greedy_action(cfg, mem, s, jnp.zeros(3, jnp.uint32))
+    t = Transition(obs=s, action=a, reward=jnp.zeros(()), next_obs=jnp.zeros(3),
+                   terminated=jnp.bool_(False), valid=jnp.bool_(True))
+    with pytest.raises(InvalidInputError, match=r"transition.next_obs: expected shape \(2,\)"):
+        train_step(cfg, mem, t)
+    with pytest.raises(InvalidInputError, match=r"values: expected shape \(4,\)"):
+        add_points(cfg, mem, jnp.zeros((4, 2)), jnp.zeros((4, 1)), jnp.zeros(5))
+    batch = HedgerParams.create(cfg, alpha=np.asarray([0.5, 0.8]))
+    with pytest.raises(InvalidInputError, match=r"params.bandwidth: expected shape \(\)"):
+        predict(cfg, mem, s, a, batch)                 # a batch of settings is for vmap
+    jax.vmap(lambda p: predict(cfg, mem, s, a, p))(batch)
+
+
+def test_nan_inputs_inside_jit_are_dont_know_or_refused():
+    """Documented NaN behaviour: a NaN query finds no neighbour ("don't know": the default
+    value, known False); a NaN reward or observation in training is refused and flagged."""
+    import jax
+    import jax.numpy as jnp
+
+    from hedger_jax import (FLAG_NONFINITE, Transition, add_points, init_memory, predict,
+                            train_step)
+
+    cfg = HedgerConfig(2, 1, capacity=64, bandwidth=0.2, default_value=0.25,
+                       discrete_actions=((-1.0,), (0.0,), (1.0,)))
+    rng = np.random.default_rng(0)
+    mem = add_points(cfg, init_memory(cfg), jnp.asarray(rng.uniform(0, 1, (30, 2)), jnp.float32),
+                     jnp.zeros((30, 1)), jnp.ones(30))
+    value, known, n = jax.jit(lambda s: predict(cfg, mem, s, jnp.zeros(1)))(
+        jnp.asarray([np.nan, 0.5], jnp.float32))
+    assert float(value) == 0.25 and not bool(known) and int(n) == 0
+    t = Transition(obs=jnp.full(2, 0.5), action=jnp.zeros(1), reward=jnp.float32(np.nan),
+                   next_obs=jnp.full(2, 0.5), terminated=jnp.bool_(False),
+                   valid=jnp.bool_(True))
+    new, _ = jax.jit(lambda m: train_step(cfg, m, t))(mem)
+    assert int(new.size) == 30 and int(new.flags) & FLAG_NONFINITE
+    np.testing.assert_array_equal(np.asarray(new.values), np.asarray(mem.values))
