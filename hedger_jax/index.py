@@ -1,65 +1,21 @@
-"""An exact, jittable neighbour index for the fixed-capacity memory: multi-level uniform grids
-(cell lists) plus a sorted list of the latest writes.
+"""Exact, jittable neighbour index for HEDGER's fixed-capacity memory: multi-level uniform
+grids (cell lists) plus a sorted list of the latest writes.
 
-Selected with ``HedgerConfig(neighbour_index="grid")`` (``"auto"`` picks it for large
-capacities). It returns exactly the neighbour set of the brute-force search
-(``memory.select_neighbours`` with ``neighbour_index="brute"``): the stored points within
-``k_thresh`` of the query, at most the ``max_neighbours`` nearest, with bit-identical float32
-squared distances (same formula, same order of operations).
+Used with ``HedgerConfig(neighbour_index="grid")`` (``"auto"`` picks it for large,
+low-dimensional memories: ``HedgerConfig.index_kind``). Contract: ``select`` returns exactly
+the neighbour set of the brute-force search (``memory.select_neighbours`` with
+``neighbour_index="brute"``) -- the stored points within ``k_thresh`` of the query, at most
+the ``max_neighbours`` nearest -- with bit-identical float32 squared distances (same formula,
+same order of operations); only a point tied with the k-th distance may be swapped for
+another at that distance. It is exact in every state of the index: ``refresh`` only keeps it
+fast.
 
-Design (all shapes static, so everything jits and vmaps; N = capacity, d = dim, k =
-``max_neighbours``):
+All shapes are static (N = capacity, d = dim, k = ``max_neighbours``, L = levels, R = recent
+list), so everything jits and vmaps. Entry points: ``empty`` / ``build`` (a new index),
+``note_write`` (one write), ``refresh`` / ``merge`` (fold the writes into the tables),
+``select`` (one query).
 
-* **Levels.** Level l guarantees to find every point within ``radius_l = k_thresh / r^l``
-  (r = sqrt 2) of the query: each dimension is cut into cells of side >= radius_l (1 + 1e-3),
-  so the points within radius_l lie in the query's cell or a neighbour along every dimension;
-  one "contiguous" state dimension (the widest) is cut 4x finer and is the fastest-varying
-  part of a cell's key, so the cells along it form contiguous key ranges ("rows"): a query
-  scans at most 3^(d-1) rows per level (2 instead of 3 along a discrete action dimension
-  whose values lie more than two radii apart: ``paired_dims``). Rows whose cells are all
-  farther than radius_l from the query (e.g. the cells of another discrete action) are
-  skipped. Level 0 (radius ``k_thresh``) answers every query; finer levels exist for large
-  capacities (``index_levels``) and make the cost independent of the density: a query uses
-  the finest level whose rows hold at least ``level_target`` x k points (3k; 4.5k with three
-  uniform dimensions, e.g. continuous actions; one lookup of the cell tables per level),
-  keeps the k nearest, and accepts them if the k-th lies within that level's radius (then no
-  point outside the scanned rows can be nearer); otherwise it rescans at level 0 (rare).
-* **Cells.** A uniform dimension i gets a range [lo_i, hi_i] (``index_bounds``; default
-  [0, 1] for state dimensions -- the scaling of ``HedgerConfig.for_env`` -- and the scaled
-  action bounds for continuous actions); a cell coordinate is
-  ``clip(floor((z_i - lo_i) / s_i), 0, G_i - 1)``: clipping is monotone and non-expansive, so
-  points outside the range are *clamped into the border cells, never dropped*; they only make
-  those cells fuller (slower, still exact). A discrete action dimension whose scaled values
-  are at least ``k_thresh`` (1 + 1e-3) apart gets one cell per value (boundaries at the
-  midpoints), so the cell tables do not spend cells on the gaps between actions. The number of
-  cells per level is capped (``max_cells``) by coarsening (sides only grow: still exact).
-* **Tables.** Per level: the memory slots sorted by cell key, a copy of their points in that
-  order, their keys, and ``starts``: the first sorted position of every cell. Build: a sort.
-* **Recent writes.** Points written since the last merge are not in the tables. The first
-  R of them (``recent_length``: ``index_recent``, or 1,024-8,192 growing with the capacity)
-  are kept in a list sorted by level-0 key (an O(R) insertion per write; with loop kernels,
-  ``hedger_jax.runtime``, a loop moving only the entries after the new one); a query finds the
-  parts of its level-0 rows in that list by binary search. Writes beyond R are scanned by
-  brute force (exact, slower). ``refresh`` merges the writes into the tables -- O(N + cells)
-  per level, so only once 3R / 4 have accumulated (``merge_threshold``: a few episodes) or
-  when forced.
-* **Scan.** The query's candidates are the concatenation of its table rows, its recent-list
-  rows and the brute-force writes; they are scanned in chunks (``chunk_width``) by a
-  ``lax.while_loop`` keeping the k nearest so far (``kselect.smallest_k``: ``lax.top_k``,
-  or a sort-free selection that loop kernels can hold; with one level, a query whose
-  candidates all fit one step of at most k takes them as they are, and candidates that fit
-  the kept entries are appended without a selection), so any occupancy is exact -- a full or
-  overflowing cell just costs more trips. A candidate's column in the index arrays follows
-  from its position in the sequence (``_candidate_columns``: a compare-and-count over the
-  segment starts, or a binary search for some vmapped batch sizes, whichever XLA's CPU
-  backend runs faster). With several levels the first trip is
-  ``first_trips`` chunks wide and only the queries with more candidates go on (under vmap,
-  16 at a time), so a batch does not run its slowest query's trips for every query.
-* **Ring buffer.** With ``full_policy="overwrite_oldest"`` a slot written since the last merge
-  is masked out of the tables (its new point is in the recent list or the brute-force writes),
-  and a recent-list entry is masked once its slot was written again, so no slot is ever
-  counted twice. ``n_new`` (writes since the merge) saturates at N + R: then every slot was
-  rewritten and the last N writes are all scanned by brute force, each slot once.
+Design, exactness arguments and the vmap constraints: docs/grid-index.md.
 """
 from __future__ import annotations
 
@@ -78,72 +34,53 @@ from hedger_jax.fusion import computed_once
 from hedger_jax.kselect import cpu_kernels, smallest_k, true_positions
 from hedger_jax.loops import batch_cond
 
-#: Largest number of grid cells per level (size of a ``starts`` table); see ``max_cells``.
+#: Largest number of cells per level (the length of one level's ``starts``; ``max_cells``).
 _MAX_CELLS = 1 << 22
-#: Relative margin of the cell side over the level radius (float32 round-off of coordinates).
+#: Relative margin of a cell's side over its level's radius (float32 round-off of coordinates).
 _SIDE_MARGIN = 1e-3
-#: Queries rescanned together under vmap (``loops.batch_cond``'s ``compact``).
+#: Queries rescanned, or (one level) selected, together under vmap (``batch_cond``'s compact).
 _RESCAN_GROUP = 16
-#: Queries that go on scanning after ``first_trips`` together under vmap (``compact``).
+#: Queries that go on after the first trip, together under vmap (``batch_cond``'s compact).
 _REST_GROUP = 16
-#: Subdivision of the contiguous dimension (cells of side radius / _FINE along it).
+#: Subdivision of the contiguous dimension: a row spans ~2 radii along it, not 3 cells.
 _FINE = 4
-#: Points merged into the tables per O(N) pass of ``refresh``.
+#: Fewest writes merged per O(N) pass of a merge (``merge_window``).
 _MERGE_WINDOW = 1024
-#: Largest number of cells along one dimension (keeps the coordinate round-off << margin).
+#: Largest number of cells along one dimension (coordinate round-off stays << the margin).
 _MAX_PER_DIM = 4096
-#: Largest number of key buckets of the recent list's lookup table (an insertion costs
-#: O(buckets)).
+#: Largest number of key buckets of the recent list (an insertion updates every bucket).
 _MAX_BUCKETS = 2048
-#: Largest capacity of the grid index: a candidate's column plus ``_TAB_BIT`` (the flag of
-#: ``_columns_by_count``'s single sum) must stay below 2^31, with room for the scan's width.
+#: Largest capacity: a candidate's column plus ``_TAB_BIT`` must stay below 2^31.
 _MAX_CAPACITY = GRID_MAX_CAPACITY
 #: Ratio of the radii of consecutive levels.
 _LEVEL_RATIO = math.sqrt(2.0)
-#: A finer level is used for a query when its rows hold at least this many times k points
-#: (then the k nearest lie within its radius with overwhelming probability for any smooth
-#: density: the radius ball fills about half of the rows' box in two dimensions; measured on
-#: uniform data at 3e5 and 1e6 points: 0 and 0.02 % of queries rescan at level 0).
+#: A finer level is used when its rows hold this many times k points: its radius then holds k.
 _LEVEL_TARGET = 3
-#: With more than two uniform (not one-cell-per-value) dimensions the targets grow by this
-#: factor per extra dimension (``level_target``): the radius ball fills a smaller part of the
-#: rows' box (3 dimensions: ~0.21 of it instead of ~0.47), so at 3k a finer level's k nearest
-#: often lay outside its radius and the query was searched again at level 0. Measured
-#: (continuous mountain car, action_scale 0.1, 2e5 uniform points in 3e5 slots): at 3k, 9.8 %
-#: of queries were rescanned; training at 4k / 5k / 6k (with ``loops``' small-batch groups)
-#: 2.17 / 2.08 / 1.69x faster than at 3k, 4.5k within 3 % of 4k -- a coarser level (2.8x the
-#: candidates) costs more than a rare rescan.
+#: Target growth per uniform dimension beyond two: the ball fills less of the rows' box.
 _TARGET_GROWTH = 1.5
-#: The auto level count adds a level while a full memory of uniformly spread points would
-#: hold at least this many times k points in a query's rows at that level. (2 gave mountain
-#: car 6 levels at 1e6 slots; 5 were faster both to train, paired 1.14x with the merges every
-#: level costs, and to query, 1.05x for 4096 batched queries; 300k keeps 4: 3 traded 1.05x
-#: training for 0.97x queries. Measured, 2-core CPU.)
+#: Auto levels: add one while a full uniform memory holds this many times k in its rows.
 _LEVEL_ADD = 2.5
 
 
 def level_target(n_uniform: int) -> float:
-    """Points (in units of k) that a finer level's rows must hold for a query to use that
-    level: ``_LEVEL_TARGET``, times ``_TARGET_GROWTH`` per uniform dimension beyond two.
-    The auto level count (``_LEVEL_ADD``) does not scale with it: continuous mountain car at
-    1e5 slots, a level whose rows reach the target only where the memory is denser than
-    average, kept 1.08x faster training than the old code; dropping it, 0.78x (paired)."""
+    """Points, in units of k, that a finer level's rows must hold for a query to use it:
+    ``_LEVEL_TARGET`` times ``_TARGET_GROWTH`` per uniform dimension beyond two.
+
+    With more uniform dimensions the radius ball fills a smaller part of the rows' box, and a
+    rescan at the covering level costs more than a coarser level's extra candidates. The
+    auto level count (``_LEVEL_ADD``) does not scale with it: a level that reaches the target
+    only where the memory is denser than average still pays for itself."""
     return _LEVEL_TARGET * _TARGET_GROWTH ** max(int(n_uniform) - 2, 0)
 
 
 def recent_length(config) -> int:
-    """R, the recent list's length: ``config.index_recent``, or (None) from the capacity N:
-    1,024 up to ~5.8e4 slots, 2,048 up to ~2.3e5, 4,096 up to ~9.3e5, 8,192 above
-    (2^round(log2(6 sqrt N)), clipped to [1024, 8192]), at most N.
+    """R, the recent list's length: ``config.index_recent``, or (None)
+    2^round(log2(6 sqrt N)) clipped to [1024, 8192], at most N.
 
-    Why it grows: a merge costs O(N) per level and merges happen every ~3R/4 writes, while a
+    Why it grows with N: a merge costs O(N) per level and comes every ~3R/4 writes, while a
     write costs O(R) (the sorted insertion) and every query scans the pending writes of its
-    rows. Training, mountain car, paired, serial codegen (2-core CPU): at 1e6 slots R = 8,192
-    was 1.08x faster than 4,096 discrete (0.98x continuous) and 16,384 0.94x of 8,192
-    (earlier 2,048 / 4,096 were 1.27x / 1.37x faster than 1,024); at 3e5 4,096 was 1.10x / 1.05x faster than 2,048
-    (discrete / continuous); at 1e5 2,048 1.03x / 1.00x against 1,024; at 5e4 2,048 was 1.08x
-    discrete but 0.81x continuous (its greedy search makes many queries per write), so 1,024
-    is kept up to ~5.8e4.
+    rows. The floor holds up to ~5.8e4 slots because the continuous-action search makes many
+    queries per write; beyond the ceiling the scans cost more than the merges saved.
     """
     n = int(config.capacity)
     if getattr(config, "index_recent", None) is not None:
@@ -153,21 +90,18 @@ def recent_length(config) -> int:
 
 
 def merge_window(geo: "Geometry", n: int) -> int:
-    """Writes merged per O(N) pass: ``_MERGE_WINDOW``, or the recent list's length when longer
-    (one pass per merge), at most the capacity n."""
+    """W, the writes merged per O(N) pass: ``_MERGE_WINDOW``, or R when longer (one pass per
+    merge), at most the capacity n."""
     return min(max(_MERGE_WINDOW, geo.recent), n)
 
 
 def merge_threshold(recent: int) -> int:
     """Pending writes from which ``refresh`` merges: 3/4 of the recent list (at least 1).
 
-    Every merge pass costs O(N) whatever the number of points it merges (up to
-    ``merge_window``), and refreshes happen between episodes, so the more writes a merge takes
-    the cheaper each one is: at 3/4 of a 1,024-entry list a merge takes ~770-970 writes of
-    200-step episodes instead of ~510-710 at one half (training paired 1.08x at 3e5 slots,
-    1.13x at 1e6, neutral at 2e4; measured). The last quarter is the headroom for the episode
-    that crosses the threshold: writes beyond the list (an episode longer than R/4 steps
-    after it) are still found, by a linear scan of them, but cost every query until the merge.
+    Why 3/4: every merge pass costs O(N) whatever it merges, so the more writes a merge takes
+    the cheaper each one is; the last quarter is headroom for the episode that crosses the
+    threshold (writes beyond the list are still found, by a linear scan that every query pays
+    until the merge).
     """
     return max(3 * recent // 4, 1)
 
@@ -178,8 +112,8 @@ class Level(NamedTuple):
     radius: every stored point within ``radius`` of a query is in the query's rows.
     lo, inv_side: per dimension, the grid origin and 1 / cell side (0 for a value dimension).
     bounds: per dimension, the sorted cell boundaries of a value dimension, else ().
-    cells, strides: cells per dimension and the key stride of each (the contiguous dimension
-      has stride 1); n_cells: their product.
+    cells, strides: per dimension, the number of cells and the key stride (the contiguous
+      dimension has stride 1); n_cells: the product of ``cells``.
     contig: the contiguous dimension. start: offset of this level's ``starts`` table.
     """
 
@@ -195,10 +129,13 @@ class Level(NamedTuple):
 
 
 class Geometry(NamedTuple):
-    """levels: the levels, coarsest (radius k_thresh) first; n_starts: total length of the
-    concatenated ``starts`` tables; recent: R, the length of the recent-write list; bucket:
-    level-0 keys per bucket of the recent list's lookup table, n_buckets: its number of
-    buckets (at most ``_MAX_BUCKETS``); target: ``level_target`` of the uniform dimensions."""
+    """Static geometry of a config's index (``geometry``).
+
+    levels: the levels, coarsest (radius ``max_k_thresh``) first. n_starts: total length of
+    the concatenated ``starts`` tables. recent: R. bucket: level-0 keys per bucket of the
+    recent list's lookup table; n_buckets: its number of buckets (<= ``_MAX_BUCKETS``).
+    target: ``level_target`` of the uniform dimensions.
+    """
 
     levels: Tuple[Level, ...]
     n_starts: int
@@ -246,11 +183,12 @@ def max_cells(capacity: int) -> int:
 
 
 def default_bounds(config) -> Tuple[Tuple[float, float], ...]:
-    """Scaled range [lo, hi] of each input dimension that the grid covers.
+    """Scaled range (lo, hi) of each of the d input dimensions that the grid covers.
 
-    ``config.index_bounds`` when set; otherwise [0, 1] for state dimensions and the scaled
-    action bounds (continuous) or the scaled discrete action set for action dimensions.
-    Anything outside is clamped into the border cells (exact, only slower).
+    ``config.index_bounds`` when set; otherwise [0, 1] for state dimensions (the scaling of
+    ``HedgerConfig.for_env``) and the scaled action bounds (continuous) or the range of the
+    scaled discrete action set. Points outside are clamped into the border cells (exact,
+    only slower).
     """
     if getattr(config, "index_bounds", None) is not None:
         return tuple((float(a), float(b)) for a, b in config.index_bounds)
@@ -270,9 +208,10 @@ def default_bounds(config) -> Tuple[Tuple[float, float], ...]:
 
 
 def _value_cells(config, side0: float):
-    """Per input dimension: the cell boundaries of a discrete action dimension whose scaled
-    values are far enough apart for one cell per value (interior cells >= side0 wide), else
-    None (a uniform dimension)."""
+    """Per input dimension: the cell boundaries (midpoints between the scaled values) of a
+    discrete action dimension whose values are far enough apart for one cell per value
+    (interior cells >= side0 wide), else None (a uniform dimension). None everywhere with
+    ``index_bounds``. Why: no cells are spent on the gaps between actions."""
     out = [None] * config.dim
     if not config.is_discrete or getattr(config, "index_bounds", None) is not None:
         return out
@@ -288,6 +227,15 @@ def _value_cells(config, side0: float):
 
 
 def _make_level(config, radius: float, bounds, values, start: int) -> Optional[Level]:
+    """The level of radius ``radius`` over ``bounds`` ((lo, hi) per dimension) with the value
+    cells ``values`` (``_value_cells``) and its ``starts`` at offset ``start``; None when even
+    one cell per uniform dimension does not fit ``max_cells``.
+
+    Uniform cells are at least radius (1 + ``_SIDE_MARGIN``) wide, so a point within the
+    radius lies in the query's cell or a neighbour along every non-contiguous dimension; the
+    contiguous one's cells are a ``_FINE``-th of that, and a row spans all of them within the
+    radius (``level_rows``). Fitting the budget only widens cells (still exact).
+    """
     d = len(bounds)
     side0 = radius * (1.0 + _SIDE_MARGIN)
     widths = [max(hi - lo, 0.0) for lo, hi in bounds]
@@ -307,6 +255,8 @@ def _make_level(config, radius: float, bounds, values, start: int) -> Optional[L
         cells[i] = max(1, cells[i] // 2)
     sides = [max(t, w / c) if values[i] is None else 0.0
              for i, (t, w, c) in enumerate(zip(target, widths, cells))]
+    # Keys: the contiguous dimension fastest, then the others last to first, so the rows of
+    # ``_row_offsets`` ascend in key order.
     strides = [0] * d
     stride = 1
     for i in [contig] + [i for i in range(d - 1, -1, -1) if i != contig]:
@@ -320,7 +270,10 @@ def _make_level(config, radius: float, bounds, values, start: int) -> Optional[L
 
 
 def _rows_volume(level: Level, bounds) -> float:
-    """Volume of a query's rows at a level (uniform dimensions only), for the auto level count."""
+    """Fraction of the uniform dimensions' box that a query's rows cover at a level (extent
+    2 radii + one cell along the contiguous dimension, 3 cells along the others, each capped
+    at the range): the share of a uniformly spread memory that the rows hold, per value cell
+    of the discrete action dimensions."""
     vol = 1.0
     for i, inv in enumerate(level.inv_side):
         if not inv:
@@ -333,11 +286,13 @@ def _rows_volume(level: Level, bounds) -> float:
 
 @functools.lru_cache(maxsize=None)
 def geometry(config) -> Geometry:
-    """The static levels of a config (cached: configs are hashable).
+    """The static geometry of a config (cached: configs are hashable).
 
-    ``config.index_levels`` levels, or (None) as many as are useful for the capacity: a finer
-    level is added while a memory full of uniformly spread points would hold at least
-    ``_LEVEL_ADD`` x ``max_neighbours`` points in a query's rows at that level (at least one).
+    Level l has radius ``max_k_thresh / sqrt(2)^l``. ``config.index_levels`` levels, or
+    (None) every level down to the one covering ``config.k_thresh``, then more while a full
+    memory of uniformly spread points would hold at least ``_LEVEL_ADD`` x k points in a
+    query's rows at the new level. Levels stop where the cells no longer change or do not
+    fit the budget. Raises ValueError for a capacity above ``_MAX_CAPACITY``.
     """
     if config.capacity > _MAX_CAPACITY:
         raise ValueError(f"capacity: the grid index holds at most {_MAX_CAPACITY} slots (int32 "
@@ -355,8 +310,8 @@ def geometry(config) -> Geometry:
         level = _make_level(config, radius / _LEVEL_RATIO ** lv, bounds, values, start)
         if level is None or (levels and level.cells == levels[-1].cells):
             break
-        # Levels down to the one covering the config's own radius are always kept: a traced
-        # k_thresh between it and max_k_thresh then has a covering level of its size.
+        # Levels down to the one covering the config's own radius are always kept, so a
+        # traced k_thresh up to max_k_thresh has a covering level of about its size.
         covering = level.radius >= config.k_thresh * (1.0 - 1e-9)
         if wanted is None and levels and not covering:
             expected = config.capacity / n_values * _rows_volume(level, bounds)
@@ -372,14 +327,11 @@ def geometry(config) -> Geometry:
 
 
 def scanned_fraction(config) -> float:
-    """The fraction of a memory of uniformly spread points (over ``default_bounds``) that a
-    query's rows cover at the level covering the config's own radius, before rows out of
-    reach are skipped: an upper bound of how
-    much of the memory a level-0 grid search reads (tested), where brute force reads all of
-    it. Small for a bandwidth that is small against the input ranges
-    (mountain car and the corridor: 0.001-0.013); large for a wide kernel or many dimensions
-    (d = 4 with bandwidth 0.1: 0.065; d = 8: 0.07), where brute force was 2-10x faster
-    (measured); ``HedgerConfig``'s "auto" index uses it."""
+    """Upper bound of the fraction of a uniformly spread memory (over ``default_bounds``) that
+    a query reads at the level covering the config's own radius (rows out of reach are not
+    yet skipped); brute force reads all of it. Small for a bandwidth small against the input
+    ranges, large for a wide kernel or many dimensions, where brute force is faster:
+    ``HedgerConfig.index_kind`` ("auto") compares it with ``AUTO_GRID_MAX_FRACTION``."""
     levels = geometry(config).levels
     cover = [lv for lv in levels if lv.radius >= config.k_thresh * (1.0 - 1e-9)][-1]
     return _rows_volume(cover, default_bounds(config))
@@ -389,7 +341,9 @@ def scanned_fraction(config) -> float:
 def _coord(levels: Tuple[Level, ...], i: int, x: jax.Array) -> jax.Array:
     """Cell coordinates along dimension i at each of ``levels`` of values x (L, ...) (or
     broadcastable) -> int32 (L, ...), clamped into the grid. The one definition of a cell:
-    the index tables and the query rows use it alike (bit-identical float32 arithmetic)."""
+    the tables and the query rows use it alike (bit-identical float32 arithmetic). Clamping
+    is monotone and non-expansive, so points outside the range land in the border cells and
+    are never lost."""
     if levels[0].bounds[i]:                       # a value dimension: the same at every level
         c = jnp.zeros(jnp.shape(x), jnp.int32)
         for edge in levels[0].bounds[i]:
@@ -398,12 +352,12 @@ def _coord(levels: Tuple[Level, ...], i: int, x: jax.Array) -> jax.Array:
     shape = (len(levels),) + (1,) * (jnp.ndim(x) - 1)
     inv = jnp.asarray([lv.inv_side[i] for lv in levels], jnp.float32).reshape(shape)
     top = jnp.asarray([lv.cells[i] - 1 for lv in levels], jnp.float32).reshape(shape)
-    u = jnp.clip((x - jnp.float32(levels[0].lo[i])) * inv, 0.0, top)   # clip, then cast:
+    u = jnp.clip((x - jnp.float32(levels[0].lo[i])) * inv, 0.0, top)   # clip before the cast:
     return jnp.floor(jnp.where(jnp.isnan(u), 0.0, u)).astype(jnp.int32)  # huge values are safe
 
 
 def cell_keys(level: Level, z: jax.Array) -> jax.Array:
-    """Row-major cell key of points z (d, ...) at a level -> int32 (...)."""
+    """Cell key of points z (d, ...) at a level (coordinates times strides) -> int32 (...)."""
     key = _coord((level,), 0, z[0][None]) * level.strides[0]
     for i in range(1, z.shape[0]):
         key = key + _coord((level,), i, z[i][None]) * level.strides[i]
@@ -412,10 +366,9 @@ def cell_keys(level: Level, z: jax.Array) -> jax.Array:
 
 def paired_dims(geo: Geometry) -> Tuple[bool, ...]:
     """Per non-contiguous dimension (in dimension order): whether a query's rows take two
-    offsets along it instead of three -- a value dimension (one cell per discrete action
-    value) whose interior cells are wider than twice level 0's radius (with margin), so at
-    most one of the two cells beside the query's can hold a point within the radius
-    (``level_rows``)."""
+    offsets along it instead of three. True for a value dimension whose interior cells are
+    wider than twice level 0's radius (with margin): then at most one of the two cells beside
+    the query's can hold a point within the radius (``level_rows``), at every level."""
     lv = geo.levels[0]
     out = []
     for i in range(len(lv.cells)):
@@ -449,20 +402,15 @@ def _stacked(geo: Geometry, name: str, i: int) -> np.ndarray:
 
 def level_rows(geo: Geometry, z: jax.Array):
     """The rows of query z (d,) at every level: (first key, last key, live), each
-    (L, ``n_rows(geo)``), in ascending key order.
+    (L, rows), rows = ``n_rows(geo)``, in ascending key order.
 
-    Row r covers the cells with the r-th combination of offsets {-1, 0, 1} from the query's
-    cell along the non-contiguous dimensions -- {0, 1} shifted by -1 where the cell below lies
-    within the level's radius, along a ``paired_dims`` dimension -- and, along the contiguous
-    one, every cell that holds points within the level's radius. A row is not live when it is
-    off the grid, or all of its cells are farther than the radius from the query. All levels
-    at once (a handful of operations whatever their number).
-
-    Paired value dimensions (e.g. mountain car's three discrete actions: 6 rows, not 9) leave
-    out a row that could never be live, so a query does a third less row work: paired
-    against three offsets, bit-identical (dead rows hold no candidates, so every candidate
-    keeps its position), 2-core CPU: batched selection 1.20x at 1e3 slots, 1.12x at 1e4;
-    predictions 1.13x at 3e5, 1.08x at 1e4; discrete training 1.21x at 2e4, 1.08x at 3e5.
+    Row r covers the cells at the r-th combination of offsets {-1, 0, 1} from the query's
+    cell along the non-contiguous dimensions ({0, 1}, shifted down by one where the cell
+    below lies within the radius, along a ``paired_dims`` dimension) and, along the
+    contiguous one, every cell that can hold points within the level's radius. A row is dead
+    when it is off the grid or all its cells are farther than the radius from the query: dead
+    rows hold no candidates, so leaving them out changes no candidate's position. The radius
+    used carries half the side margin (round-off of z +- radius). All levels at once.
     """
     d = z.shape[0]
     L = len(geo.levels)
@@ -470,7 +418,7 @@ def level_rows(geo: Geometry, z: jax.Array):
     radius = jnp.asarray([lv.radius * (1.0 + 0.5 * _SIDE_MARGIN) for lv in geo.levels],
                          jnp.float32)[:, None]                              # (L, 1)
     paired = paired_dims(geo)
-    offs = jnp.asarray(_row_offsets(paired))                                 # (R, d-1)
+    offs = jnp.asarray(_row_offsets(paired))                                 # (rows, d-1)
     base = jnp.zeros((L, offs.shape[0]), jnp.int32)
     gap2 = jnp.zeros((L, offs.shape[0]), jnp.float32)
     live = jnp.ones((L, offs.shape[0]), bool)
@@ -481,7 +429,7 @@ def level_rows(geo: Geometry, z: jax.Array):
         b = geo.levels[0].bounds[i]
         if paired[col]:
             # Rows (c - 1, c) where the cell below lies within the level's radius, else
-            # (c, c + 1): both are never within it (cells wider than two radii).
+            # (c, c + 1): cells wider than two radii are never both within it.
             below = jnp.asarray((-np.inf,) + tuple(b), jnp.float32)[jnp.clip(rc, 0, len(b))]
             rc = rc - (z[i] - below <= radius).astype(jnp.int32)
         rc = rc + offs[None, :, col]
@@ -491,6 +439,7 @@ def level_rows(geo: Geometry, z: jax.Array):
             cc = jnp.clip(rc, 0, len(b))
             lo, hi = edges[cc], edges[cc + 1]
         else:
+            # Border cells reach to infinity: they hold the clamped points.
             side = jnp.asarray(1.0 / _stacked(geo, "inv_side", i), jnp.float32)[:, None]
             lo = jnp.float32(geo.levels[0].lo[i]) + rc.astype(jnp.float32) * side
             lo, hi = jnp.where(rc <= 0, -jnp.inf, lo), jnp.where(rc >= cells - 1, jnp.inf,
@@ -525,11 +474,11 @@ def _excl_cumsum(x: jax.Array) -> jax.Array:
 
 
 def build(config, points: jax.Array, size: jax.Array) -> GridIndex:
-    """Index the valid slots [0, size) of points (d, N) from scratch (a sort per level).
+    """Index the valid slots [0, size) of points (d, N) from scratch -> GridIndex with an
+    empty recent list: per level, a stable sort by cell key (ties in slot order).
 
-    O(N log N) with a slow multi-operand sort on CPU: used for a memory without an index
-    (e.g. built by hand or loaded) and after very many writes; ``refresh`` merges a few
-    episodes' points in O(N + cells) instead.
+    O(N log N), and the sort is slow on the CPU: for a memory without an index and for merges
+    of many windows; ``refresh`` merges a few episodes' writes in O(N + cells) instead.
     """
     geo = geometry(config)
     n = points.shape[-1]
@@ -552,21 +501,18 @@ def build(config, points: jax.Array, size: jax.Array) -> GridIndex:
 
 def note_write(config, index: GridIndex, z: jax.Array, slot: jax.Array,
                did_write: jax.Array) -> GridIndex:
-    """Record one write (bool ``did_write``) of point z (d,) to ``slot``: the first R since the
-    last merge are inserted in level-0 key order into the recent columns (``_insert_recent``),
-    later ones appended after them (O(1)); past N writes the index is saturated."""
+    """Record the write of point z (d,) to ``slot`` (int32 ()) when ``did_write`` (bool ())
+    -> index. The first R writes since the merge are inserted in level-0 key order into the
+    recent columns (``_insert_recent``, O(R)); writes R .. N-1 are appended in write order
+    (O(1)); past N writes the index is saturated (``n_new`` = N + 1)."""
     geo = geometry(config)
     R = geo.recent
     n = config.capacity
     L = len(geo.levels)
     n_new = index.n_new
     order, spoints, rkeys, rstarts = index.order, index.spoints, index.rkeys, index.rstarts
-    # Row L is only touched in its first R columns (an insertion: static slices, written back
-    # in place) or one column (an append: a scatter that drops the write when not appending,
-    # so the old value is never read back). Reading a column that an earlier update of the
-    # same step wrote made XLA copy the whole (L + 1, ...) arrays at every write (measured:
-    # 5 ms per write at capacity 300,000), and a window with a traced start became a gather
-    # and scatter of R columns per write under vmap.
+    # Row L is written only through static slices or a one-column scatter that drops
+    # non-appends, never read back in the same step: XLA then updates it in place, not by copy.
     if R:
         key = computed_once(cell_keys(geo.levels[0], z))
         ins = computed_once(did_write & (n_new < R))
@@ -586,16 +532,14 @@ def note_write(config, index: GridIndex, z: jax.Array, slot: jax.Array,
 def _insert_by_shift(L: int, rkeys, order, spoints, key, slot, z, count, ins):
     """``_insert_recent`` by O(R) passes: every recent column pos < j <= count takes column
     j - 1 (static slices and selects: one form for any batch). Columns above ``count`` (not
-    live) are left as they are, as ``_insert_by_blocks`` leaves them: vmapped seeds (this
-    form) and single runs (that one) give bit-identical memories."""
+    live) are left as they are, as ``_insert_by_blocks`` leaves them, so vmapped and single
+    runs give bit-identical memories."""
     R = rkeys.shape[-1]
     pos = jnp.sum((rkeys <= key).astype(jnp.int32))
     j = jnp.arange(R, dtype=jnp.int32)
 
     def shift(a, x):                 # a (..., R): insert x at pos, shift the rest right
-        # a[j - 1] by a pad, not a concatenation of slices: XLA's CPU code copied that with
-        # memmove, which ran slowly enough to take 11 % of a discrete training step at 2e4
-        # slots (AMD EPYC; profiled). Paired: training 1.16-1.27x at 2e4, 1.40x at 3e5.
+        # a[j - 1] by a pad: XLA's CPU code copies a concatenation of slices by a slow memmove.
         right = jax.lax.pad(a[..., :-1], jnp.zeros((), a.dtype),
                             [(0, 0, 0)] * (a.ndim - 1) + [(1, 0, 0)])
         return jnp.where(ins & (j <= count),
@@ -612,14 +556,12 @@ _INSERT_BLOCK = 16
 
 
 def _insert_by_blocks(L: int, rkeys, order, spoints, key, slot, z, count, ins):
-    """``_insert_recent`` moving only the live columns pos .. count - 1 (one right), in blocks
+    """``_insert_recent`` moving only the live columns pos .. count - 1 one right, in blocks
     of ``_INSERT_BLOCK`` from the top down, in place: a loop of ~(count - pos) / 16 steps
-    instead of O(R) passes over the recent columns (and XLA's copies of them), pos found by
-    a binary search. For a single write (the training step); columns above ``count`` (not
-    live) are left as they are. rkeys, order and spoints may carry leading axes of size 1 (a
-    vmap of one member, ``_insert_recent_fn``), updated in place as they are: squeezed, the
-    loop's results were copied back into the batched arrays at every write (~26 us per
-    training step at 2e4 slots)."""
+    (pos by a binary search) instead of O(R) passes. For a single write; columns above
+    ``count`` (not live) are left as they are. rkeys, order and spoints may carry leading
+    axes of size 1 (a vmap of one member, ``_insert_recent_fn``) and are updated as they
+    are: squeezing them would copy the loop's results back into the batched arrays."""
     lead = rkeys.ndim - 1                        # leading singleton axes
     ones = (1,) * lead
     zeros = (jnp.int32(0),) * lead
@@ -669,6 +611,8 @@ def _insert_by_blocks(L: int, rkeys, order, spoints, key, slot, z, count, ins):
 
 @functools.lru_cache(maxsize=None)
 def _insert_recent_fn(L: int):
+    """``_insert_recent`` as a ``custom_vmap``: unbatched or a vmap of one member, the block
+    loop on the arrays as they are; a batch of members, the shift passes."""
     @custom_vmap
     def insert(rkeys, order, spoints, key, slot, z, count, ins):
         return _insert_by_blocks(L, rkeys, order, spoints, key, slot, z, count, ins)
@@ -680,8 +624,7 @@ def _insert_recent_fn(L: int):
         if axis_size == 1:               # one seed: its own loop, on the arrays as they are
             small = [a[0] for a in args[3:]]                  # key, slot, z, count, ins
             return _insert_by_blocks(L, *args[:3], *small), (True, True, True)
-        # Batched writes (vmapped seeds): the O(R) passes, one form for every member (a loop
-        # would run until the member with the most columns to move is done, with gathers).
+        # A batched loop would run as long as the member with the most columns to move.
         out = jax.vmap(functools.partial(_insert_by_shift, L))(*args)
         return out, (True, True, True)
 
@@ -691,9 +634,9 @@ def _insert_recent_fn(L: int):
 def _insert_recent(L: int, rkeys, order, spoints, key, slot, z, count, ins):
     """Insert a write (key (), slot (), point z (d,)) into the recent list (keys rkeys (R,),
     ascending; row L of order (L + 1, N) and spoints (L + 1, d, N)) after the entries whose
-    key is <= key (so equal keys stay in write order), shifting the later ones one column
+    key is <= key (equal keys stay in write order), shifting the later ones one column
     right, when ``ins`` (count: live entries before the insertion, < R when ``ins``).
-    Returns (rkeys, order, spoints)."""
+    Returns (rkeys, order, spoints). On the CPU through ``_insert_recent_fn``."""
     args = (rkeys, order, spoints, key, slot, z, count, ins)
     if cpu_kernels():
         return _insert_recent_fn(L)(*args)
@@ -708,11 +651,12 @@ def _put(dst: jax.Array, pos: jax.Array, src: jax.Array, sorted_: bool) -> jax.A
 
 def _merge_level(config, level: Level, order, skeys, spoints, starts, wslots, wpts, active,
                  h0, m):
-    """Merge the window's points (slots wslots (W,), points wpts (d, W), ``active`` (W,)) into one
-    level's tables; ring buffer: entries of the window's slots (indexed before) are removed.
+    """Merge a window of writes (slots wslots (W,), points wpts (d, W), ``active`` (W,)) into
+    one level's order, skeys (N,), spoints (d, N), starts (n_cells + 1,) -> the same four.
+    Ring buffer: the entries already indexed for the window's m slots (from h0) are removed.
 
-    O(N + T + W log W), no sort of the N entries: kept entries move by the number of removed
-    entries before them and of merged entries with a smaller key (a stable counting merge).
+    A stable counting merge in O(N + cells + W log W), no sort of the N entries: a kept entry
+    moves by the removed entries before it and the merged entries with a smaller key.
     """
     n = order.shape[-1]
     T = level.n_cells
@@ -731,9 +675,8 @@ def _merge_level(config, level: Level, order, skeys, spoints, starts, wslots, wp
         new_starts = _excl_cumsum(kept_counts + new_counts)
         sorted_old = False
     else:
-        # No removals ("error" policy: the merged slots were empty). Every entry, used or not
-        # (unused ones have key T and stay at the end), moves up by the number of merged
-        # entries with a smaller key: strictly increasing positions, no prefix sum over N.
+        # No removals (the merged slots were empty): every entry, unused ones (key T) too,
+        # moves up by the merged entries with a smaller key -- increasing, no prefix sum.
         pos_old = pos + new_before[skeys]
         kept_counts = jnp.concatenate([jnp.diff(starts), jnp.zeros((1,), jnp.int32)])
         new_starts = starts + new_before
@@ -755,8 +698,8 @@ def _merge_level(config, level: Level, order, skeys, spoints, starts, wslots, wp
 
 def _merge_window(config, index: GridIndex, points: jax.Array, head: jax.Array,
                   todo: jax.Array):
-    """Merge the oldest min(todo, W) of the last ``todo`` writes into every level's tables.
-    Returns (index with updated tables, todo - merged)."""
+    """Merge the oldest min(todo, W) of the last ``todo`` writes (points (d, N), head ()) into
+    every level's tables -> (index with updated tables, todo - merged)."""
     geo = geometry(config)
     n = points.shape[-1]
     w = merge_window(geo, n)
@@ -778,16 +721,15 @@ def _merge_window(config, index: GridIndex, points: jax.Array, head: jax.Array,
     return index, todo - m
 
 
-#: A merge of more writes than this many windows rebuilds the tables (one sort) instead.
+#: Above this many windows of pending writes, ``merge`` rebuilds the tables by one sort.
 _MAX_MERGE_WINDOWS = 8
 
 
 def merge(config, index: GridIndex, points: jax.Array, head: jax.Array,
           size: jax.Array) -> GridIndex:
-    """Merge every write since the last merge into the tables and empty the recent list: a
-    ``lax.while_loop`` of ceil(writes / W) window merges, or, for more than
-    ``_MAX_MERGE_WINDOWS`` windows (or a saturated index), a rebuild of the valid slots
-    [0, size) from scratch."""
+    """Fold every write since the last merge into the tables and empty the recent list ->
+    index: a ``lax.while_loop`` of window merges, or, beyond ``_MAX_MERGE_WINDOWS`` windows,
+    a rebuild of the valid slots [0, size) (``build``). points (d, N), head (), size ()."""
     n = points.shape[-1]
     todo = jnp.minimum(index.n_new, n)             # once saturated every slot is rewritten
 
@@ -805,11 +747,10 @@ def merge(config, index: GridIndex, points: jax.Array, head: jax.Array,
 
 def refresh(config, index: GridIndex, points: jax.Array, head: jax.Array, size: jax.Array,
             force: bool = False) -> GridIndex:
-    """Merge the writes since the last merge into the tables when worthwhile: when at least
-    ``merge_threshold`` writes are pending (three quarters of the recent list; anything
-    pending without a recent list), or always
-    with ``force``. The search is exact either way; merging only keeps it fast. Under
-    ``vmap`` the merge runs only when some member needs it (``loops.batch_cond``)."""
+    """``merge`` when at least ``merge_threshold`` writes are pending (any, without a recent
+    list), or always with ``force`` (static bool) -> index. The search is exact either way;
+    merging only keeps it fast. Under vmap the merge runs only when some member needs it
+    (``loops.batch_cond``)."""
     geo = geometry(config)
     if force:
         return merge(config, index, points, head, size)
@@ -820,26 +761,26 @@ def refresh(config, index: GridIndex, points: jax.Array, head: jax.Array, size: 
 
 # ------------------------------------------------------------------------------ query
 def _table_segments(geo: Geometry, index: GridIndex, first, last, live):
-    """Every level's table segments of the query's rows: (positions, lengths), each (L, R).
-    first/last/live: ``level_rows``."""
+    """Every level's table segments of the query's rows (first/last/live: ``level_rows``)
+    -> (positions, lengths), each int32 (L, rows); dead rows have length 0."""
     starts = jnp.asarray([lv.start for lv in geo.levels], jnp.int32)[:, None]
     s0 = index.starts[starts + first]
     return s0, jnp.where(live, index.starts[starts + last + 1] - s0, 0)
 
 
 def covering_level(geo: Geometry, k_thresh) -> jax.Array:
-    """The finest level whose radius covers ``k_thresh`` (int32 ()): every stored point within
-    k_thresh of a query lies in the query's rows at that level. Level 0 covers the largest
-    radius the config allows (``HedgerConfig.max_k_thresh``)."""
+    """The finest level whose radius covers ``k_thresh`` (float or traced ()) -> int32 ():
+    every stored point within k_thresh of a query lies in the query's rows at that level.
+    Level 0 covers the largest radius the config allows (``HedgerConfig.max_k_thresh``)."""
     radii = jnp.asarray([lv.radius for lv in geo.levels], jnp.float32)
     return jnp.maximum(jnp.sum((radii >= k_thresh).astype(jnp.int32)) - 1, 0)
 
 
 def level_segments(geo: Geometry, index: GridIndex, first, last, live, k: int, k_thresh):
-    """The levels a query searches: -> (cover (), level (), positions (L, R), lengths (L, R)).
-    ``cover`` is ``covering_level``; ``level`` the finest level at or below it whose rows hold
-    >= geo.target * k indexed points, else ``cover``; positions and lengths every level's table
-    segments of the query's rows. first/last/live: ``level_rows``."""
+    """The levels a query searches -> (cover (), level (), positions (L, rows), lengths
+    (L, rows)). ``cover``: ``covering_level``. ``level``: the finest level finer than cover
+    whose rows hold >= ceil(geo.target * k) indexed points, else cover. positions, lengths:
+    every level's table segments of the query's rows. first/last/live: ``level_rows``."""
     s0, length = _table_segments(geo, index, first, last, live)
     cover = covering_level(geo, k_thresh)
     counts = jnp.sum(length, axis=1)
@@ -850,12 +791,14 @@ def level_segments(geo: Geometry, index: GridIndex, first, last, live, k: int, k
 
 
 def _recent_segments(geo: Geometry, index: GridIndex, first, last, live):
-    """The recent-list entries in the level-0 rows (first/last/live (R,)): (list positions,
-    lengths). Whole key buckets are taken (a superset of the rows: exact, as every
-    candidate's distance is tested). Where a bucket spans two rows (buckets of more keys than
-    the contiguous dimension has cells, e.g. 4 dimensions), a row's segment starts after the
-    previous live row's end, so no entry is a candidate twice (it was: a slot counted twice
-    in K). The rows' keys ascend with the row number (``level_rows``), and so do the list's."""
+    """The recent-list entries of the level-0 rows (first/last/live (rows,)) -> (list
+    positions, lengths), each (rows,).
+
+    Whole key buckets are taken: a superset of the rows, exact since every candidate's
+    distance is tested (and level 0's rows hold every point within any level's radius, so
+    they serve every level). Where a bucket spans two rows, a row's segment starts after the
+    previous live row's end, so no entry is a candidate twice (rows and list ascend in key).
+    """
     a = index.rstarts[first // geo.bucket]
     b = jnp.where(live, index.rstarts[last // geo.bucket + 1], 0)
     done = jnp.concatenate([jnp.zeros((1,), b.dtype), jax.lax.cummax(b)[:-1]])
@@ -865,21 +808,22 @@ def _recent_segments(geo: Geometry, index: GridIndex, first, last, live):
 
 def _scan(config, geo: Geometry, index: GridIndex, head, z, lv, tab_start, tab_len,
           rec_start, rec_len):
-    """Running top-k over the candidates: per row, its table segment at level ``lv`` then its
-    recent writes; last, the writes since the merge beyond the first R. Every candidate comes
-    from the same (level or recent row, column) gather. -> (best slots (k,), best squared
-    distances (k,)), ascending with several levels, else unordered; with one level and
-    ``order`` (a function of (slots, squared distances) of any width), each branch's answer
-    goes through it (``select_orders``)."""
+    """The k nearest candidates of query z (d,) within level ``lv``'s radius -> (slots int32
+    (k,), squared distances float32 (k,)), in no particular order, +inf where fewer.
+
+    The candidate sequence: per row, its table segment at level lv (tab_start, tab_len
+    (rows,)), then its recent segment (rec_start, rec_len (rows,)); last, the writes since
+    the merge beyond the first R. It is read in trips of a ``lax.while_loop`` that keeps the
+    k nearest so far, so any occupancy is exact; a full cell only costs more trips.
+    """
     L = len(geo.levels)
     n = index.order.shape[-1]
     R = geo.recent
     k = min(config.max_neighbours, n)
     chunk = chunk_width(config)
-    # Only candidates within the level's radius can be an accepted answer (``select``); the
-    # fewer finite entries, the cheaper XLA's top_k.
+    # Only candidates within the level's radius can be part of an accepted answer.
     r2 = jnp.asarray([lvl.radius for lvl in geo.levels], jnp.float32)[lv] ** 2
-    n_new = jnp.minimum(index.n_new, n)                        # not saturated here
+    n_new = jnp.minimum(index.n_new, n)                        # saturated: ``select``'s brute
     zero = jnp.zeros((1,), jnp.int32)
     # One segment per row (table part, then recent part) and one for the later writes; per
     # segment: (begin in the candidate sequence, table start, table length, recent start).
@@ -892,8 +836,8 @@ def _scan(config, geo: Geometry, index: GridIndex, head, z, lv, tab_start, tab_l
     t_start = jnp.concatenate([tab_start, zero]).astype(jnp.int32)
     r_start = jnp.concatenate([rec_start, jnp.full((1,), R, jnp.int32)]).astype(jnp.int32)
     table = jnp.stack([begins, t_start, tab_len, r_start], 1)
-    # Sub-segments: per segment its table part, then its recent part; a candidate's column is
-    # its position plus its sub-segment's shift (``_candidate_columns``).
+    # Sub-segments (a segment's table part, then its recent part): a candidate's column is its
+    # position plus its sub-segment's shift (``_candidate_columns``).
     sub_begin = jnp.stack([begins, begins + tab_len], 1).reshape(-1)
     shift = jnp.stack([t_start - begins, r_start - begins - tab_len], 1).reshape(-1)
     sub_delta = shift - jnp.concatenate([zero, shift[:-1]])
@@ -909,13 +853,12 @@ def _scan(config, geo: Geometry, index: GridIndex, head, z, lv, tab_start, tab_l
         d2 = _sqdist(_candidate_points(index.spoints, row, col), z)
         ok = (p < total) & (d2 <= r2)
         if config.full_policy == "overwrite_oldest":
-            # A table entry whose slot was written since the merge is stale (its new point is
-            # among the recent writes).
+            # A table entry whose slot was written since the merge is stale: its new point is
+            # among the recent writes.
             ok = ok & ~(in_tab & (jax.lax.rem(slot - h0 + n, n) < n_new))
         return slot, d2, ok
 
-    # The first trip of a multi-level scan by ``_first_trip``: one query's by segment windows,
-    # a vmapped batch's by the column count (same values).
+    # The windowed first trip (``_first_trip``) flags no stale entries: not for a ring buffer.
     by_segments = L > 1 and config.full_policy != "overwrite_oldest" and n >= _WINDOW
     sub_len = jnp.stack([tab_len, lengths - tab_len], 1).reshape(-1)
     sub_col = jnp.stack([t_start, r_start], 1).reshape(-1)
@@ -929,52 +872,29 @@ def _scan(config, geo: Geometry, index: GridIndex, head, z, lv, tab_start, tab_l
         else:
             slot, d2, ok = candidates(p, _candidate_columns)
         if L > 1:
-            # Several levels: the kept candidates are carried as sequence positions (unique per
-            # query, free), and only the k kept at the end become slots, instead of gathering
-            # the slot of every candidate (192 per query in the first trip). Same selection
-            # (payloads do not order it), same slots. Paired, bit-identical, 2-core CPU:
-            # batched predictions 1.05x at 3e5 slots, selection 1.11x at 1e6; training
-            # discrete 1.06x at 3e5, 1.03x at 1e6, continuous 0.95-1.03x at 3e5.
+            # Keep sequence positions (unique per query) and turn only the final k into slots,
+            # rather than gathering every candidate's slot; the selection is the same.
             slot = p
-        # Only candidates nearer than the current k-th can enter (an equal one would lose to
-        # the earlier entry anyway): later trips hand top_k few finite values (it is cheap on
-        # those, ~1 us per row, and ~40 ns per finite value in random order).
-        # (The k-th nearest so far is the largest kept distance: +inf while fewer than k.)
+        # Only candidates nearer than the current k-th (+inf while fewer than k are kept) can
+        # enter (a tie loses to the kept entry before it), so later trips select few values.
         ok = ok & (d2 < jnp.max(best_d2))
 
-        # ``smallest_k``: with loop kernels (``hedger_jax.runtime``), single queries and
-        # vmapped batches below 64 select without ``top_k``, so the training loops stay
-        # single kernels with several levels too (training at 1e5 / 3e5 / 1e6 slots paired
-        # 1.42x / 1.31x / 1.17x discrete, 1.16x / 1.34x continuous at 1e5 / 3e5; it was
-        # 0.93x at 3e5 before LLVM's unroll threshold was lowered, so top_k was kept then).
+        # ``smallest_k`` is sort-free on the CPU, so the trip loop stays one kernel.
         def top(best):
             return smallest_k(jnp.concatenate([best[0], jnp.where(ok, d2, jnp.inf)]),
                               jnp.concatenate([best[1], slot]), k)
 
         if L > 1:                     # rows of ~3k+ candidates: the k nearest must be chosen
-            if fresh:   # nothing kept yet: the k nearest of the new candidates only (k fewer
-                #             values: batched selection 1.14-1.19x at 1e5-1e6, measured;
-                #             packing the candidates within the radius into half the width
-                #             first was slower)
-                # (Cutting the candidates beyond the smallest of a few shrinking radii that
-                # held k before the selection, a gain for XLA's top_k in big batches, slowed
-                # the sort-free form: 0.97x discrete, 0.85x continuous at 3e5, paired.)
+            if fresh:   # nothing kept yet: select among the new candidates only
                 return (p0 + width,) + smallest_k(jnp.where(ok, d2, jnp.inf), slot, k)
             return (p0 + width,) + top((best_d2, best_idx))
-        # One level (small memories): usually every candidate within the radius fits in the
-        # k kept entries, whose finite ones are a prefix; then the new ones are appended
-        # after them (unsorted: ``select``'s caller puts K in canonical order) and XLA's
-        # top_k (a third of a batched query's cost at 1e4 slots, measured) runs only for the
-        # queries that overflow, 16 at a time under vmap.
+        # One level: the kept finite entries are a prefix (a selection leaves all k finite)
+        # and the new ones usually fit after them; only overflowing queries select.
         n_best = jnp.sum(jnp.isfinite(best_d2).astype(jnp.int32))
 
         def append(best):
-            # Gathered, not scattered: output entry n_best + r takes the r-th accepted
-            # candidate (``kselect.true_positions``: through ok's bits packed in words; a
-            # prefix count of ok and a binary search over it was slower: training at 2e4
-            # slots 1.09-1.19x discrete, 1.28x continuous; batched selection 1.09x at 1e4,
-            # 1.49x at 2e4, paired, bit-identical). XLA's CPU scatter was a loop of single
-            # updates: training 1.03x, batched selection 1.03-1.05x (paired, bit-identical).
+            # Gathered, not scattered (XLA's CPU scatter is a loop of single updates): entry
+            # n_best + r takes the r-th accepted candidate.
             r = jnp.arange(k, dtype=jnp.int32) - n_best                    # (k,)
             src = true_positions(ok, r)
             new = (r >= 0) & (src < width)
@@ -988,19 +908,12 @@ def _scan(config, geo: Geometry, index: GridIndex, head, z, lv, tab_start, tab_l
     carry = (jnp.zeros((), jnp.int32), jnp.full((k,), jnp.inf, jnp.float32),
              jnp.zeros((k,), jnp.int32))
     if L == 1:
-        # One level (small memories): rows hold few candidates (1e4 uniform points: at most
-        # 43, one trip); one loop (one copy of the trip in the program: compile time).
+        # One level (small memories, few candidates per row): one loop, one copy of the trip.
         _, best_d2, best_idx = jax.lax.while_loop(lambda c: c[0] < total,
                                                   lambda c: trip(*c, chunk), carry)
         return best_idx, best_d2
-    # Several levels: two stages. A query's rows at its level hold about geo.target k to
-    # twice that many candidates, so the first stage is one wide trip (``first_trips`` chunks:
-    # one top_k instead of several, batched selection 1.2x at 3e5 and 1e6, measured), then
-    # only the queries with more candidates go on, ``_REST_GROUP`` at a time under vmap
-    # (``loops.batch_cond``'s ``compact``): a vmapped while loop runs as many trips as the
-    # query with the most candidates needs, for every query of the batch (3e5 slots, 4096
-    # uniform queries: mean 2.8 trips of 64, max 6). Same candidates in the same order:
-    # bit-identical results.
+    # Several levels: one wide first trip covers most queries' candidates; only the queries
+    # with more go on, so a vmapped batch does not run its slowest query's trips for all.
     carry = trip(*carry, first_trips(config) * chunk, fresh=True)
 
     def rest(c):
@@ -1014,8 +927,8 @@ def _scan(config, geo: Geometry, index: GridIndex, head, z, lv, tab_start, tab_l
 
 def _candidate_cells(lv, L: int, n: int, col, in_tab):
     """(row, column) of candidates in the (L + 1, ...) index arrays: level lv's table or
-    (row L) the recent list. Straight 2-D gathers from those arrays (``index.order[lv]`` with
-    a traced lv would be a copy of the level's N entries)."""
+    (row L) the recent list; col, in_tab (w,) -> two int32 (w,). Straight 2-D gathers:
+    ``index.order[lv]`` with a traced lv would copy the level's N entries."""
     return jnp.where(in_tab, lv, L), jnp.clip(col, 0, n - 1)
 
 
@@ -1024,8 +937,7 @@ def _candidate_points(spoints, row, col) -> jax.Array:
     return jnp.stack([spoints[row, i, col] for i in range(spoints.shape[1])])
 
 
-#: Columns one step of ``_first_trip_by_segments`` reads from a segment (one vector load
-#: per coordinate).
+#: Columns one step of ``_first_trip_by_segments`` reads (one vector load per coordinate).
 _WINDOW = 16
 
 
@@ -1047,13 +959,13 @@ def _first_trip_by_segments(spoints, z, lv, sub_begin, sub_len, sub_col, r2, wid
     """``_first_trip_by_count`` for one query, segment by segment: each sub-segment (a row's
     table part, then its recent part; ``_scan``) is read in windows of ``_WINDOW`` contiguous
     columns (``dynamic_slice``: vector loads) whose distances are written at the
-    sub-segment's positions, up to the trip's width. The same distances (the same formula on
-    the same points); positions beyond the candidates stay +inf, so they are not live.
+    sub-segment's positions, up to the trip's width. The same distances (same formula, same
+    points); positions beyond the candidates stay +inf, so they are not live.
 
     A window that would run past the arrays' end starts earlier (``dynamic_slice`` clamps)
     and its lanes are shifted by the same amount; lanes outside the sub-segment keep the
-    values already written (a window's tail must not overwrite the next sub-segment's
-    positions: sub-segments are written in position order, and each writes only its own)."""
+    values already written, so a window's tail never overwrites the next sub-segment's
+    positions (sub-segments are written in position order, each only its own)."""
     L, n = spoints.shape[0] - 1, spoints.shape[-1]
     dim = spoints.shape[1]
     lane = jnp.arange(_WINDOW, dtype=jnp.int32)
@@ -1090,17 +1002,12 @@ def _first_trip_by_segments(spoints, z, lv, sub_begin, sub_len, sub_col, r2, wid
 
 @functools.lru_cache(maxsize=None)
 def _first_trip(width: int):
-    """The first trip of a multi-level scan: (spoints, z, lv, table, sub_begin, sub_delta,
-    sub_len, sub_col, total, r2) -> (squared distances, live), (width,) each, at positions
-    0 .. width - 1 of the query's candidate sequence. One query: ``_first_trip_by_segments``;
-    under ``vmap``: ``_first_trip_by_count``, whose gathers XLA's CPU backend emits element by
-    element for a batch as for one query, while a batch's slices would be gathers too (the
-    segment form for a vmapped batch ran 0.47x, measured). Same values either way.
-
-    Measured (paired, 2-core Intel Xeon, continuous mountain car at 3e5 slots, results
-    identical): training 1.05x with the greedy search's grid still vmapped (its refinements
-    and the replay's use the segment form), and with the grid searched action by action
-    (``greedy.search_1d``) a further 1.06x."""
+    """The first trip of a multi-level scan as a ``custom_vmap``: (spoints, z, lv, table,
+    sub_begin, sub_delta, sub_len, sub_col, total, r2) -> (squared distances, live), (width,)
+    each, at positions 0 .. width - 1 of the query's candidate sequence. Same values either
+    way: one query reads contiguous windows (``_first_trip_by_segments``); a vmapped batch
+    gathers candidate by candidate (``_first_trip_by_count``), since a batch's slices with
+    per-member starts would be gathers too."""
 
     @custom_vmap
     def first(spoints, z, lv, table, sub_begin, sub_delta, sub_len, sub_col, total, r2):
@@ -1115,8 +1022,7 @@ def _first_trip(width: int):
     return first
 
 
-#: Flag bit of ``_columns_by_count``'s single sum: set for a candidate in a table part. The
-#: grid index needs every column (< capacity + scan width) below it (``geometry`` checks).
+#: Table-part flag of ``_columns_by_count``'s sum; every column (< N + scan width) is below it.
 _TAB_BIT = 1 << 30
 
 
@@ -1133,18 +1039,20 @@ def _columns_by_count(p, table, sub_begin, sub_delta):
     prefix, as they ascend) sets the bit exactly for a table part."""
     del table
     even = jax.lax.broadcasted_iota(jnp.int32, sub_delta.shape, sub_delta.ndim - 1) % 2 == 0
+    # Materialised once: XLA would recompute them inside every element of the reduction.
     delta = computed_once(sub_delta + jnp.where(even, _TAB_BIT, -_TAB_BIT))
     sub_begin = computed_once(sub_begin)
     acc = p + jnp.sum(jnp.where(p[:, None] >= sub_begin[None, :], delta[None, :], 0), axis=1)
     return acc & (_TAB_BIT - 1), acc >= _TAB_BIT
 
 
-#: The candidates' columns: ``_columns_by_count`` (see there).
+#: The candidates' columns (``_columns_by_count``).
 _candidate_columns = _columns_by_count
 
 
-#: Widest default scan step (``chunk_width``), and the steps' granularity.
+#: Widest default scan step (``chunk_width``).
 _CHUNK = 64
+#: Granularity of ``chunk_width``'s narrowed steps.
 _CHUNK_STEP = 16
 
 
@@ -1158,15 +1066,12 @@ def _full_memory_candidates(config) -> float:
 
 
 def chunk_width(config) -> int:
-    """Candidates per step of the grid scan: ``config.index_chunk``, or (None) ``_CHUNK``,
-    narrowed for a one-level grid whose rows hold few points even when the memory is full:
-    the multiple of ``_CHUNK_STEP`` at or above m + 4 sqrt(m), m the mean count of a query's
-    rows in a full memory of uniformly spread points (about the most any of 4096 uniform
-    queries meets, measured: mountain car 1e3 / 1e4 slots, m + 4 sqrt(m) = 10 / 43, largest
-    counts 9 / 40). A vmapped one-level scan makes as many steps as its fullest query needs,
-    and a step costs its width whatever it holds: batched selection at 1e3 / 1e4 slots with
-    16 / 48 instead of 64 ran 1.40x / 1.15x, predictions at 1e4 1.10x, with no change with
-    several levels (paired, 2-core CPU). Denser data is still exact, in more steps."""
+    """Candidates per trip of the grid scan: ``config.index_chunk``, or (None) ``_CHUNK``,
+    narrowed for a one-level grid to the multiple of ``_CHUNK_STEP`` at or above
+    m + 4 sqrt(m) (m: ``_full_memory_candidates``), about the most any query meets in a
+    full uniform memory. Why: a vmapped one-level scan makes as many trips as its fullest
+    query needs, and a trip costs its width whatever it holds. Denser data stays exact, in
+    more trips."""
     if getattr(config, "index_chunk", None) is not None:
         return int(config.index_chunk)
     if len(geometry(config).levels) > 1:
@@ -1177,18 +1082,16 @@ def chunk_width(config) -> int:
 
 
 def first_trips(config) -> int:
-    """Width, in chunks of ``chunk_width``, of the grid scan's first trip with several levels,
-    made for every query of a vmapped batch before only those with more candidates go on:
-    enough for twice the candidates a finer level's rows hold when that level is chosen
-    (``level_target`` x k), so few queries go on (4096 uniform queries at 1e5 / 3e5 / 1e6
-    uniform points: 2.1 % / 3.4 % / 0.15 %, measured; 2 or 4 chunks were slower at 3e5 and
-    1e6)."""
+    """Width, in chunks of ``chunk_width``, of the first trip of a multi-level scan, which
+    every query of a vmapped batch makes: twice the candidates a chosen finer level's rows
+    hold (``level_target`` x k), so that few queries go on."""
     k = min(config.max_neighbours, config.capacity)
     return max(1, int(math.ceil(2 * geometry(config).target * k / chunk_width(config))))
 
 
 def _sqdist(points: jax.Array, z: jax.Array) -> jax.Array:
-    """Same formula and order as ``memory.squared_distances`` (bit-identical results)."""
+    """Squared distances from z (d,) to points (d, ...) -> (...): the formula and order of
+    ``memory.squared_distances``, so the results are bit-identical."""
     d2 = (points[0] - z[0]) ** 2
     for i in range(1, points.shape[0]):
         d2 = d2 + (points[i] - z[i]) ** 2
@@ -1197,13 +1100,13 @@ def _sqdist(points: jax.Array, z: jax.Array) -> jax.Array:
 
 def select(config, points: jax.Array, head: jax.Array, index: GridIndex, z: jax.Array,
            k_thresh=None):
-    """Exact K of query z (d,) within ``k_thresh`` (default the config's; at most the radius
-    the index is built for, ``HedgerConfig.max_k_thresh``) -> (indices int32 (k,), sqdist
-    float32 (k,), mask bool (k,)).
+    """K of query z (d,) -> (slots int32 (k,), squared distances float32 (k,), mask bool
+    (k,)), k = min(max_neighbours, N); points (d, N) and head () are the memory's.
 
-    Same contract as the brute-force search (k = min(max_neighbours, capacity), +inf where
-    there is no candidate; the caller pads, masks and puts K in canonical order), except the
-    order: ascending squared distances with several levels, unordered with one.
+    ``k_thresh``: float or traced (); default the config's; at most
+    ``HedgerConfig.max_k_thresh``, the radius level 0 is built for. Brute force's set (module
+    doc), +inf and mask False where there is no neighbour, in no particular order: the
+    caller pads and puts K in canonical order.
     """
     geo = geometry(config)
     n = points.shape[-1]
@@ -1223,9 +1126,8 @@ def select(config, points: jax.Array, head: jax.Array, index: GridIndex, z: jax.
         found = _scan(config, geo, index, head, z, jnp.zeros((), jnp.int32), seg_start[0],
                       seg_len[0], rec_start, rec_len)
     else:
-        # A finer level than the covering one is used when its rows hold enough points, and
-        # its answer kept only if it found k neighbours within its radius (then nothing
-        # outside its rows is nearer); else the covering level is scanned.
+        # A finer level's answer stands only if it found k neighbours within its radius (then
+        # nothing outside its rows is nearer); else the covering level is scanned.
         found = _scan(config, geo, index, head, z, lv, seg_start[lv], seg_len[lv], rec_start,
                       rec_len)
         ok = (lv == cover) | jnp.all(jnp.isfinite(found[1]))
@@ -1234,11 +1136,11 @@ def select(config, points: jax.Array, head: jax.Array, index: GridIndex, z: jax.
             return _scan(config, geo, index, head, z, cover, seg_start[cover], seg_len[cover],
                          rec_start, rec_len)
 
-        # A branch, not a loop: XLA hoists loop-invariant work out of a while loop, which
-        # would run the rescan always; under vmap only when some query needs it.
+        # A branch, not a loop: XLA would hoist a loop's invariant rescan and always run it.
         found = batch_cond(~ok, rescan, lambda c: c, found, compact=_RESCAN_GROUP)
     if config.full_policy == "overwrite_oldest":
-        # Saturated (more writes since the merge than slots): brute force over every slot.
+        # Saturated (more writes since the merge than slots, so every slot is valid): brute
+        # force; the sort-free selection over all N only for the small one-level memories.
         def brute(_):
             d2, idx = smallest_k(_sqdist(points, z), jnp.arange(n, dtype=jnp.int32), k,
                                  kernel_form=len(geo.levels) == 1)
