@@ -8,6 +8,11 @@ Core API::
     action, value, known = greedy_action(config, memory, state, key)
     memory, info = train_episode(config, memory, episode)           # Algorithm 2, reversed
 
+Every function with a ``params`` argument (these three among them) takes a ``HedgerParams``
+of traced hyperparameters (vmap over it for a sweep) or, by default, None for the config's
+values. ``make_train`` builds a whole run as one
+pure function; ``Hedger`` is the host-side learner.
+
 Importing it changes nothing global. ``hedger_jax.jit`` is ``jax.jit`` with HEDGER's
 per-program XLA options; ``hedger_jax.cpu.configure()`` tunes the whole process for CPU speed
 (call it before any JAX computation).

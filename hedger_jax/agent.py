@@ -2,11 +2,15 @@
 
 One seed's whole run is a pure function::
 
-    train = make_train(env, hedger_config, run_config, phase1=demos)
-    results = jax.jit(jax.vmap(train))(jax.random.split(key, n_seeds))
+    train = make_train(env, hedger_config, run_config, phase1=demos).train
+    state, results = jax.jit(jax.vmap(train))(jax.random.split(key, n_seeds))
+
+``train(key, params=None)``: ``params`` is a ``HedgerParams`` of traced hyperparameters
+(vmap over it for a sweep), or None for the configs' values as constants.
 
 It knows environments only through the functional interface of ``envs.base`` (duck-typed:
-``reset``, ``step``, ``evaluation_starts``, ``action_space``, ``max_steps``).
+``default_params``, ``reset``, ``step``, ``evaluation_starts``, ``action_space``,
+``max_steps``; ``reset_to`` for a phase-1 policy with a start).
 
 Phases (paper section 2.4):
   1. an example policy is in control -- recorded demonstrations (a ``Transition`` batch with
@@ -41,6 +45,7 @@ from hedger_jax.replay_cache import (REUSE_MIN_CAPACITY, StepNeighbours, missing
 from hedger_jax.replay_cache import usable as replay_cache_usable
 from hedger_jax.train import Transition, train_episode, train_step
 
+#: ``RunConfig.exploration`` choices.
 EXPLORATION = ("random", "gaussian")
 
 
@@ -62,8 +67,9 @@ class RunConfig:
       rounding (XLA compiles the larger program's arithmetic a little differently: a whole
       ``train`` and the same run block by block then agree to rounding, not bit for bit).
       None (default): for memories of at least ``replay_cache.REUSE_MIN_CAPACITY`` slots,
-      where searches are dear (mountain car, paired: 1.06-1.08x at 3e5 slots, 0.99x at 2e4,
-      and the program takes ~1-3 s longer to compile). False: every query searches.
+      where searches are dear. False: every query searches.
+
+    epsilon and noise_std are the defaults of the ``HedgerParams`` fields of the same names.
     """
 
     epsilon: float = 0.2
@@ -111,8 +117,8 @@ class Evaluation(NamedTuple):
 
 
 class RunState(NamedTuple):
-    """Carry of a run between blocks. memory: ``Memory``; key; points: int32 () training
-    points seen; episodes: int32 () phase-two episodes run."""
+    """Carry of a run between blocks. memory: ``Memory``; key: the run's PRNG key; points:
+    int32 () training points seen; episodes: int32 () phase-two episodes run."""
 
     memory: Memory
     key: jax.Array
@@ -137,8 +143,9 @@ class BlockResult(NamedTuple):
 
 
 def _success(info: Any, terminated: jax.Array) -> jax.Array:
-    """Did the episode reach its goal? ``info["success"]`` or ``info["reached_goal"]`` when the
-    env reports it (a terminal can also be a failure, e.g. a wall), else ``terminated``."""
+    """Whether a step reached the goal, bool (): ``info["success"]`` or
+    ``info["reached_goal"]`` when the env reports it (a terminal can also be a failure, e.g.
+    a wall), else ``terminated``."""
     if isinstance(info, dict):
         for name in ("success", "reached_goal"):
             if name in info:
@@ -147,12 +154,13 @@ def _success(info: Any, terminated: jax.Array) -> jax.Array:
 
 
 def run_params(config: HedgerConfig, run: "RunConfig", params: Optional[HedgerParams]):
-    """``params``, or the config's and run config's values as constants when None."""
+    """``params`` (a ``HedgerParams``), or the config's and run config's values as
+    constants when None."""
     return HedgerParams.defaults(config, run) if params is None else params
 
 
 def random_action(config: HedgerConfig, key: jax.Array) -> jax.Array:
-    """A uniformly random action (A,): from the discrete set or in the box."""
+    """A uniformly random action (A,) from ``key``: from the discrete set or in the box."""
     return _random_action_from_uniform(config, jax.random.uniform(key, (config.action_dim,)))
 
 
@@ -173,9 +181,11 @@ def explore_action(config: HedgerConfig, run: RunConfig, memory: Memory, obs: ja
     """Epsilon-greedy action (A,) for one observation (S,).
 
     All its randomness (the coin, the greedy policy's tie-breaks and fallback, the
-    exploratory action) is one draw of ``hedger_jax.rng``: one fused operation per step.
+    exploratory action) comes from one ``jax.random.uniform`` draw of ``key``.
     ``greedy_only`` (bool (), may be traced): instead, exactly ``greedy_action(config, memory,
-    obs, key)[0]`` -- one copy of the greedy search serves both (``make_train``'s block).
+    obs, key, params)[0]``, so one copy of the greedy search serves training and evaluation
+    (``make_train``'s block). params: ``HedgerParams`` (epsilon, noise_std and HEDGER's
+    settings), or None for the configs' values.
     """
     return _explore(config, run, memory, obs, key, greedy_only, False, params)
 
@@ -191,6 +201,7 @@ def explore_action_recorded(config: HedgerConfig, run: RunConfig, memory: Memory
 
 def _explore(config: HedgerConfig, run: RunConfig, memory: Memory, obs: jax.Array,
              key: jax.Array, greedy_only: Any, record: bool, params=None):
+    """``explore_action`` (record False) or ``explore_action_recorded`` (record True)."""
     p = run_params(config, run, params)
     a_dim = config.action_dim
     n_greedy = greedy_draws(config)
@@ -217,8 +228,7 @@ def _explore(config: HedgerConfig, run: RunConfig, memory: Memory, obs: jax.Arra
         return (action, missing(config, n_candidates, memory.size)) if record else action
 
     if run.exploration == "random":
-        # A random exploratory step needs no greedy search: skipped (an epsilon share of the
-        # steps; under vmap the branch becomes a select and both run, as before).
+        # A random exploratory step needs no greedy search (under vmap both branches run).
         return jax.lax.cond(explore_now, explore, greedy, None)
     out = greedy(None)
     action = out[0] if record else out
@@ -235,9 +245,10 @@ def _explore(config: HedgerConfig, run: RunConfig, memory: Memory, obs: jax.Arra
 
 def training_act(config: HedgerConfig, run: RunConfig, memory: Memory, greedy_only: Any = False,
                  params: Optional[HedgerParams] = None):
-    """The rollout's ``act`` of phase two: ``explore_action`` (reading, not carrying, the
-    memory), with the greedy searches' neighbour sets recorded for ``train_prefix`` when
-    ``run.reuse_neighbours``."""
+    """The rollout's ``act(key, obs, act_state)`` of phase two: ``explore_action`` (reading,
+    not carrying, the memory), with the greedy searches' neighbour sets recorded for
+    ``train_prefix`` when neighbours are reused (``run.reuse_neighbours``, and only under
+    ``full_policy="error"``). params: ``HedgerParams``, or None for the configs' values."""
     reuse = run.reuse_neighbours
     if reuse is None:
         reuse = config.capacity >= REUSE_MIN_CAPACITY
@@ -330,10 +341,12 @@ def train_prefix(config: HedgerConfig, memory: Memory, episode: Transition, leng
     """Reverse replay of the first ``length`` steps of an episode (newest first).
 
     Same result as ``train_episode`` on an episode whose steps >= length are padding, but it
-    only does ``length`` steps of work (a ``fori_loop`` with a traced trip count).
-    ``neighbours``: the rollout's record of the sets its greedy searches found (``rollout``
-    with ``explore_action_recorded``), when ``memory`` is the memory it acted with: the
-    replay reuses them instead of searching (``hedger_jax.replay_cache``; same result).
+    only does ``length`` steps of work (``masked_fori_loop``: cheap under vmap over seeds
+    with their own lengths). ``neighbours``: the rollout's record of the sets its greedy
+    searches found (``rollout`` with ``explore_action_recorded``), when ``memory`` is the
+    memory it acted with: the replay reuses them instead of searching
+    (``hedger_jax.replay_cache``; the same sets). params: ``HedgerParams``, or None for the
+    config's values. Returns the memory.
     """
     width = int(episode.valid.shape[0])
 
@@ -346,16 +359,12 @@ def train_prefix(config: HedgerConfig, memory: Memory, episode: Transition, leng
         mem, _ = train_step(config, mem, step._replace(valid=step.valid & active), cached, params)
         return mem
 
-    # Under vmap over seeds (each with its own length) a plain fori_loop would select between
-    # the old and new memory of every seed after every step; see ``hedger_jax.loops``.
+    # A plain fori_loop under vmap would select between old and new memories after every step.
     return masked_fori_loop(length, body, memory)
 
 
-#: Episodes of an evaluation stepped together (``evaluate_policy``'s ``lanes``): a lane whose
-#: episode ended takes the next waiting one, so a batch of many short episodes and a few
-#: capped ones does not step finished episodes until the longest ends. Measured (learned
-#: mountain-car policy, 200 and 1,000 episodes, 2-core CPU): 16-64 lanes per seed 2-3x faster
-#: than all episodes at once, one seed or five vmapped; more lanes approach the old cost.
+#: Default number of evaluation episodes stepped together (``evaluate_policy``'s ``lanes``):
+#: fewer lanes than episodes, so finished episodes are not stepped while the longest runs.
 EVAL_LANES = 32
 
 
@@ -369,9 +378,8 @@ def evaluate_policy(env: Any, env_params: Any, act, key: jax.Array, n_episodes: 
 
     ``lanes`` (static; default ``min(n, EVAL_LANES)``) episodes are stepped together (the
     policy lane after lane, the environment vmapped); when one ends, its lane starts the next
-    waiting episode, until all have run. Episode i
-    always starts from start i and draws its step-t randomness from key i folded with t, so
-    the results do not depend on ``lanes`` (tested); the loop ends once every episode has.
+    waiting episode, until all have run. Episode i always starts from start i and draws its
+    step-t randomness from key i folded with t, so the results do not depend on ``lanes``.
     """
     if lanes is not None and int(lanes) < 1:
         raise ValueError(f"lanes: must be >= 1, got {lanes}")
@@ -398,12 +406,8 @@ def evaluate_policy(env: Any, env_params: Any, act, key: jax.Array, n_episodes: 
         next_ep, ep, t, live, succeeded, obs, states, steps_out, success_out = c
         k_step = jax.vmap(jax.random.fold_in)(keys[ep], t)
         # The lanes' actions one after another (lax.map), their environment steps at once:
-        # a vmapped policy is a second, batched copy of the greedy search in the program
-        # (the training rollout has the single-query one), with the batched forms of its
-        # loops and branches. Same results; paired, 2-core CPU: the continuous grid ``train``
-        # at 2e4 slots traced and compiled in 23 s instead of 28 (the evaluation alone:
-        # 7.3 s instead of 13.4), and ran faster: Figure 2 quick end to end 64 s instead of
-        # 87 (continuous), 32 s instead of 36 (discrete), 44 s instead of 48 (vmapped seeds).
+        # a vmapped policy would add a second, batched copy of the greedy search to the
+        # program (the training rollout has the single-query one). Same results.
         acts = jax.lax.map(lambda ok: one_act(*ok), (obs, k_step))
         nobs, nstates, term, trunc, succ = jax.vmap(one_step)(obs, states, k_step, acts)
         succeeded = succeeded | succ
@@ -444,7 +448,8 @@ def evaluate(env: Any, env_params: Any, config: HedgerConfig, memory: Memory, ke
     The metric is the mean number of steps to the goal; an episode that does not reach it
     within ``max_steps`` (or fails, e.g. hits a wall) counts as ``max_steps``. ``refresh``
     (static): bring the neighbour index up to date first (``False`` where the caller just
-    did: the search is exact either way).
+    did: the search is exact either way). params: ``HedgerParams``, or None for the
+    config's values. Returns ``Evaluation``.
     """
     if refresh:
         memory = refresh_index(config, memory)
@@ -457,9 +462,11 @@ def evaluate(env: Any, env_params: Any, config: HedgerConfig, memory: Memory, ke
 
 
 class Train(NamedTuple):
-    """What ``make_train`` returns: ``train(key) -> (RunState, BlockResult with leading axis
-    n_blocks + 1)`` and its pieces ``init(key) -> (RunState, BlockResult)`` (phase 1 and the
-    first evaluation) and ``run_block(RunState) -> (RunState, BlockResult)``."""
+    """What ``make_train`` returns: ``train(key, params=None) -> (RunState, BlockResult with
+    leading axis n_blocks + 1)`` and its pieces ``init(key, params=None) -> (RunState,
+    BlockResult)`` (phase 1 and the first evaluation) and ``run_block(RunState,
+    params=None) -> (RunState, BlockResult)``. params: ``HedgerParams`` (traced, e.g. a
+    vmapped sweep), or None for the configs' values as constants."""
 
     train: Any
     init: Any
@@ -467,7 +474,8 @@ class Train(NamedTuple):
 
 
 def _phase1_fn(env, env_params, config: HedgerConfig, phase1, max_steps: int):
-    """memory, key, params -> (memory, points) for the chosen phase-1 source."""
+    """Phase 1 as a function (memory, key, params) -> (memory, points int32 ()) for the
+    chosen source: none, demonstrations, or an example policy."""
     if phase1 is None:
         return lambda memory, key, params: (memory, jnp.zeros((), jnp.int32))
     if isinstance(phase1, Transition):
@@ -518,15 +526,16 @@ def make_train(env: Any, config: HedgerConfig, run: RunConfig, *, env_params: An
       ``transitions_from_demonstrations``); or ``(policy, n_episodes[, start])`` for an example
       policy in control (episodes of at most ``phase1_max_steps``, from ``env.reset`` or from
       ``env.reset_to(start)``).
+    env_params: the environment's parameters (default ``env.default_params()``).
+    Returns ``Train``; each of its functions takes an optional ``HedgerParams``.
     """
     if env_params is None:
         env_params = env.default_params()
     max_steps = int(run.train_max_steps or env.max_steps)
     phase1_fn = _phase1_fn(env, env_params, config, phase1, phase1_max_steps)
 
-    # The neighbour index is refreshed after every episode (phase 1's included), so that the
-    # evaluations, which follow an episode or phase 1, need no refresh of their own: one copy
-    # of the refresh in the program.
+    # The index is refreshed after every episode (phase 1's included), so the evaluations
+    # need no refresh of their own: one copy of the refresh in the program.
     def do_eval(memory, key, points, episodes, mean_len, params):
         ev = evaluate(env, env_params, config, memory, key, run.eval_episodes,
                       run.eval_max_steps, refresh=False, params=params)
@@ -540,14 +549,15 @@ def make_train(env: Any, config: HedgerConfig, run: RunConfig, *, env_params: An
     n_eval = int(run.eval_episodes)
 
     def block(state: RunState, first: jax.Array, k_eval0: jax.Array, params):
-        """One evaluation block. ``first`` (bool ()): the evaluation right after phase 1
-        (no episodes, the evaluation key ``k_eval0`` from ``phase1``, the run key kept).
+        """One evaluation block: RunState -> (RunState, BlockResult). ``first`` (bool ()):
+        the evaluation right after phase 1 (no episodes, the evaluation key ``k_eval0`` from
+        ``phase1``, the run key kept).
 
         The block's training episodes, then its evaluation episodes, are one loop over
         episodes through one rollout, whose policy is epsilon-greedy while training and
         greedy while evaluating (``explore_action``'s ``greedy_only``): one copy of the
-        greedy search in the program instead of two. The evaluation is ``evaluate``'s,
-        episode for episode (same starts, keys and cap; tested), run one episode at a time.
+        greedy search in the program. The evaluation is ``evaluate``'s, episode for episode
+        (same starts, keys and cap), run one episode at a time.
         """
         key, k_block, k_eval = jax.random.split(state.key, 3)
         key = jnp.where(first, state.key, key)
@@ -618,9 +628,8 @@ def make_train(env: Any, config: HedgerConfig, run: RunConfig, *, env_params: An
 
     def train(key, params: Optional[HedgerParams] = None):
         expect_key("key", key)
-        # One scan over the n_blocks + 1 evaluations (the first right after phase 1, with no
-        # episodes), so the evaluation appears once in the program: the same results as
-        # init then n_blocks run_blocks, about half the compile time of writing it that way.
+        # One scan over the n_blocks + 1 evaluations (the first right after phase 1), so the
+        # block appears once in the program; the same results as init then run_blocks.
         state, k_eval0 = phase1(key, params)
         firsts = jnp.arange(run.n_blocks + 1) == 0
         state, results = jax.lax.scan(lambda s, f: block(s, f, k_eval0, params), state, firsts)

@@ -15,23 +15,19 @@ CANON_PAD = int(np.iinfo(np.int32).max)
 
 
 def canonical_order(idx: jax.Array, d2: jax.Array, mask: jax.Array):
-    """(idx int32 (w,), d2 float32 (w,), mask bool (w,)) -> the same entries reordered: the
-    real ones (``mask``; their slots are distinct) by ascending slot, then the others in their
-    given order; and the new mask (a prefix of the real count).
+    """idx int32 (w,), d2 float32 (w,), mask bool (w,) -> (idx (w,), d2 (w,), mask (w,)): the
+    real entries (``mask``; their slots are distinct) by ascending slot, then the others in
+    their given order; the new mask is a prefix as long as the real count.
 
-    Applying it to the first w' entries of a longer set whose later entries are all padding
-    gives the same result as applying it to the whole set (padding keeps its order).
+    Exact (a permutation, no arithmetic on the values). On the first w' entries of a longer
+    set whose later entries are all padding it gives the same result as on the whole set.
     """
     w = idx.shape[-1]
     j = jnp.arange(w, dtype=jnp.int32)
     # Distinct keys: a real neighbour's slot, else one of the w largest int32 by position.
     key = jnp.where(mask, idx.astype(jnp.int32), CANON_PAD - w + j)
-    # Rank of every key (a w x w comparison count: fuses and vectorises, unlike a sort call
-    # per query on CPU); the ranks are a permutation, applied as a w x w one-hot selection
-    # (exact: one nonzero term per sum). A scatter here became a loop of w single-element
-    # updates (XLA's CPU scatter expansion): the one-hot is 1.09x faster for batched
-    # selection at 1e3-1e4 slots, 1.045x for 16 vmapped training seeds, 1.00-1.03x for one
-    # (paired, same process, bit-identical; 2-core CPU).
+    # Ranks by a w x w comparison count and a one-hot selection (exact: one nonzero term per
+    # sum): both fuse and vectorise, where a sort is a call per query and a CPU scatter a loop.
     rank = jnp.sum((key[None, :] < key[:, None]).astype(jnp.int32), axis=1)
     hit = rank[None, :] == j[:, None]                          # (w out, w in)
     idx, d2 = (jnp.sum(jnp.where(hit, a[None, :], jnp.zeros((), a.dtype)), axis=1)

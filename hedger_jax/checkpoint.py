@@ -1,10 +1,10 @@
 """Save and load a HEDGER agent to one file, bit for bit, atomically.
 
-What is saved: the ``HedgerConfig``, the ``Memory`` (any leading batch axes; its five arrays --
-a neighbour index, when the config uses one, is derived state, rebuilt on load by
-``refresh_index``), optionally the
-``RunConfig``, optional extra arrays (e.g. the learner's PRNG key) and metadata (library, jax,
-numpy and Python versions, seed, env id, creation time, format version, user keys).
+What is saved: the ``HedgerConfig``; the ``Memory`` (any leading batch axes), its five
+arrays (a neighbour index, when the config uses one, is derived state, rebuilt on load by
+``refresh_index``); optionally the ``RunConfig``; optional extra arrays (e.g. the learner's
+PRNG key); and metadata (library, jax, numpy and Python versions, seed, env id, creation
+time, user keys).
 
 File format (format version 1): one uncompressed ``.npz`` (a zip, loaded without pickle)::
 
@@ -55,11 +55,16 @@ from hedger_jax.memory import Memory
 __all__ = ["CheckpointError", "Checkpoint", "save_checkpoint", "load_checkpoint",
            "read_checkpoint_header", "FORMAT", "FORMAT_VERSION"]
 
+#: The header's "format" value.
 FORMAT = "hedger-jax-checkpoint"
+#: The format version written, and the only one read.
 FORMAT_VERSION = 1
+#: The ``Memory`` arrays saved (the index is rebuilt, not saved).
 _MEMORY_FIELDS = ("points", "values", "size", "head", "flags")
+#: Their required dtypes.
 _MEMORY_DTYPES = {"points": np.float32, "values": np.float32, "size": np.int32,
                   "head": np.int32, "flags": np.int32}
+#: Bytes per write call of a save.
 _CHUNK = 1 << 20
 
 PathLike = Union[str, os.PathLike]
@@ -73,9 +78,9 @@ class CheckpointError(ValueError):
 class Checkpoint(NamedTuple):
     """What ``load_checkpoint`` returns.
 
-    config: HedgerConfig; memory: Memory (jax arrays, exact bits of what was saved);
-    run_config: RunConfig or None; metadata: dict (see the module docstring);
-    extra_arrays: dict name -> np.ndarray.
+    config: HedgerConfig; memory: Memory (jax arrays, exact bits of what was saved; the
+    index rebuilt); run_config: RunConfig or None; metadata: dict (see the module
+    docstring); extra_arrays: dict name -> np.ndarray.
     """
 
     config: HedgerConfig
@@ -86,6 +91,7 @@ class Checkpoint(NamedTuple):
 
 
 def _digest(a: np.ndarray) -> str:
+    """sha256 hex digest of an array's dtype, shape and bytes."""
     a = np.ascontiguousarray(a)
     h = hashlib.sha256(f"{a.dtype.str}|{a.shape}|".encode())
     h.update(a.tobytes())
@@ -93,6 +99,7 @@ def _digest(a: np.ndarray) -> str:
 
 
 def _config_to_json(cfg: Any) -> Dict[str, Any]:
+    """A config dataclass as a JSON-ready dict (tuples as lists)."""
     out = {}
     for f in dataclasses.fields(cfg):
         v = getattr(cfg, f.name)
@@ -103,6 +110,8 @@ def _config_to_json(cfg: Any) -> Dict[str, Any]:
 
 
 def _config_from_json(cls: type, data: Dict[str, Any], where: str) -> Any:
+    """A ``cls`` config from ``_config_to_json``'s dict (validated by its constructor), else
+    ``CheckpointError``."""
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(data) - names)
     if unknown:
@@ -120,6 +129,7 @@ def _config_from_json(cls: type, data: Dict[str, Any], where: str) -> Any:
 
 
 def _versions() -> Dict[str, str]:
+    """The library, jax, numpy and Python versions for the metadata."""
     import jax
 
     try:
@@ -193,6 +203,8 @@ def save_checkpoint(path: PathLike, config: HedgerConfig, memory: Memory, run_co
 
 
 def _read(path: str):
+    """Open and verify a checkpoint file -> (header, arrays by name, fail, where); every
+    problem raises ``CheckpointError`` naming the file."""
     where = f"checkpoint {path!r}"
 
     def fail(msg):
@@ -302,8 +314,7 @@ def load_checkpoint(path: PathLike, config: Optional[HedgerConfig] = None,
         fail(f"the stored memory is invalid: {exc}")
     from hedger_jax.memory import refresh_index
 
-    # The five stored arrays come back bit for bit; a neighbour index (if the config uses
-    # one) is derived state and is rebuilt from them.
+    # The stored arrays come back bit for bit; the neighbour index is rebuilt from them.
     memory = refresh_index(stored, Memory(**{k: jnp.asarray(getattr(np_memory, k))
                                              for k in _MEMORY_FIELDS}))
     extra = {k[len("extra/"):]: a for k, a in raw.items() if k.startswith("extra/")}

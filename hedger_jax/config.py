@@ -1,9 +1,11 @@
-"""Static configuration of a HEDGER learner.
+"""Static configuration of a HEDGER learner: ``HedgerConfig``.
 
 ``HedgerConfig`` is a frozen, hashable dataclass: pass it as a static argument to ``jax.jit``
-(or close over it). Everything that changes during learning lives in pytrees (``Memory``),
-never here. Every field is validated on construction; a bad value raises ``ValueError``
-naming the field.
+(or close over it). It fixes shapes, loop lengths and the default hyperparameters; the
+hyperparameters a sweep varies are traced in ``HedgerParams`` (``hedger_jax.params``), and
+everything that changes during learning lives in pytrees (``Memory``). Every field is
+validated on construction: a bad value raises ``ValueError`` naming the field, a traced one
+``StaticFieldError``.
 """
 from __future__ import annotations
 
@@ -11,25 +13,21 @@ import dataclasses
 import math
 from typing import Any, Optional, Tuple
 
+#: ``full_policy`` choices: drop and flag new points, or overwrite the oldest (ring buffer).
 FULL_POLICIES = ("error", "overwrite_oldest")
+#: ``neighbour_index`` choices.
 NEIGHBOUR_INDEXES = ("auto", "brute", "grid")
-#: ``neighbour_index="auto"`` uses the grid index from ``AUTO_GRID_CAPACITY_LOW_DIM`` slots up
-#: for inputs of at most ``AUTO_GRID_LOW_DIM`` dimensions, measured with ``Hedger.learn`` on
-#: the 2-core CPU (README, "Using the library"): mountain car (d = 3) trained 1.4x faster than by
-#: brute force at 512 slots, 5x at 1,000-2,000, 10x at 10,000; the corridor (d = 4) 1.8x at
-#: 4,000 and 1.0-2.2x per CPU-second (1.5-2.2x wall-clock) at 12,000. Higher-dimensional
-#: inputs (a query scans 3^(d-1) rows of cells) keep brute force up to ``AUTO_GRID_CAPACITY``
-#: (not measured here).
+#: Inputs of at most this many dimensions are "low-dimensional" for ``neighbour_index="auto"``.
 AUTO_GRID_LOW_DIM = 4
+#: "auto" uses the grid index from this capacity up for low-dimensional inputs ...
 AUTO_GRID_CAPACITY_LOW_DIM = 512
+#: ... and from this one for more dimensions (a query scans 3^(d-1) rows of cells) ...
 AUTO_GRID_CAPACITY = 16_384
-#: ... and only when a query's rows cover at most this fraction of a uniformly filled memory
-#: (``index.scanned_fraction``): with a wide kernel or many dimensions the grid reads a large
-#: part of the memory through many rows and brute force is faster (d = 4, bandwidth 0.1,
-#: fraction 0.065: brute force 2x faster at 20,000 slots; d = 8, 0.07: 10x).
+#: ... when a query's rows cover at most this fraction of a uniformly filled memory
+#: (``index.scanned_fraction``; beyond it, e.g. with a wide kernel, brute force is faster).
 AUTO_GRID_MAX_FRACTION = 0.02
-#: Largest capacity of the grid index (int32 positions; ``index._columns_by_count`` keeps a
-#: flag at bit 30 above every column). "auto" uses brute force above it; "grid" is refused.
+#: Largest capacity of the grid index (int32 positions with a flag at bit 30); above it
+#: "auto" uses brute force and "grid" is refused.
 GRID_MAX_CAPACITY = 1 << 29
 
 
@@ -39,7 +37,8 @@ class StaticFieldError(TypeError):
 
 
 def reject_traced(owner: str, name: str, value: Any) -> None:
-    """Raise ``StaticFieldError`` if ``value`` (or an element of it) is a JAX tracer."""
+    """Raise ``StaticFieldError`` if ``value`` (or an element of it, nested tuples and lists
+    included) is a JAX tracer; the message says where a traced field belongs instead."""
     import jax
 
     items = value if isinstance(value, (tuple, list)) else (value,)
@@ -55,13 +54,15 @@ def reject_traced(owner: str, name: str, value: Any) -> None:
                                    f"or vmapped; {hint}")
 
 
-#: The config fields whose values ``HedgerParams`` carries as traced values.
+#: The ``HedgerConfig`` and ``RunConfig`` fields that ``HedgerParams`` carries as traced values.
 _TRACED_FIELDS = ("bandwidth", "min_weight", "k_thresh", "k_min", "alpha", "gamma",
                   "default_value", "ridge", "ivh_tol", "input_offset", "input_scale", "use_ivh",
                   "region_update", "epsilon", "noise_std")
 
 
 def _tuple_of_floats(name: str, value: Any, length: int) -> Tuple[float, ...]:
+    """``value`` (a scalar, broadcast, or a sequence) as ``length`` finite floats, else
+    ``ValueError`` naming the field."""
     try:
         out = tuple(float(v) for v in value)
     except TypeError:
@@ -93,6 +94,13 @@ class HedgerConfig:
     Training: ``alpha``/``gamma`` of Q-learning; ``region_update`` moves every neighbour
     towards the new value by its kernel weight (Algorithm 2 lines 7-8).
 
+    Traced settings: bandwidth, min_weight, k_thresh, k_min, alpha, gamma, default_value,
+    ridge, ivh_tol, input_offset, input_scale, use_ivh and region_update are the defaults of
+    ``HedgerParams`` (``hedger_jax.params``), which carries them as traced values; with
+    ``params=None`` these values are compile-time constants. ``max_bandwidth`` (default
+    ``bandwidth``) is the largest bandwidth a ``HedgerParams`` may use: the grid index is
+    built for its radius.
+
     Actions: ``discrete_actions`` (a tuple of length-A tuples) or, when ``None``, the box
     [``action_low``, ``action_high``] searched by ``greedy_samples`` evenly spaced samples and
     at most ``greedy_iters`` quadratic-fit refinements stopping at ``greedy_tol``.
@@ -102,20 +110,18 @@ class HedgerConfig:
     is never corrupted); ``"overwrite_oldest"`` replaces the oldest point (a ring buffer).
 
     Neighbour search: ``neighbour_index`` "brute" (scan every slot), "grid" (the exact grid
-    index of ``hedger_jax.index``: same neighbour sets) or "auto" (grid from
-    ``AUTO_GRID_CAPACITY_LOW_DIM`` = 512 slots up for inputs of at most 4 dimensions, from
-    ``AUTO_GRID_CAPACITY`` = 16,384 for more, unless the kernel is wide against the input
-    ranges: ``AUTO_GRID_MAX_FRACTION``; the grid holds at most ``GRID_MAX_CAPACITY`` = 2^29
-    slots); ``index_chunk`` candidates per step of the grid scan
-    (None: ``index.chunk_width``, 64, or 16-48 for small one-level memories; with several
-    levels the first step is ``index.first_trips`` chunks wide);
-    ``index_bounds`` the scaled range ((lo, hi) per dimension) the grid covers (default: [0, 1]
-    per state dimension and the scaled action range; points outside are clamped to the border
-    cells, never dropped); ``index_levels`` the number of grid levels (finer levels keep the
-    search cost independent of the density; None: as many as the capacity makes useful);
-    ``index_recent`` the length of the sorted list of points written since the last merge of
-    the grid tables (merges happen once three quarters of it are used: ``index.merge_threshold``;
-    None: chosen from the capacity, ``index.recent_length``).
+    index of ``hedger_jax.index``: the same neighbour sets) or "auto" (``index_kind``: the
+    grid from ``AUTO_GRID_CAPACITY_LOW_DIM`` slots up for inputs of at most
+    ``AUTO_GRID_LOW_DIM`` dimensions, from ``AUTO_GRID_CAPACITY`` for more, unless the kernel
+    is wide against the input ranges, ``AUTO_GRID_MAX_FRACTION``; the grid holds at most
+    ``GRID_MAX_CAPACITY`` slots). Grid settings: ``index_chunk`` candidates per step of the
+    scan (None: ``index.chunk_width``); ``index_bounds`` the scaled range ((lo, hi) per
+    dimension) the grid covers (default: [0, 1] per state dimension and the scaled action
+    range; points outside are clamped to the border cells, never dropped); ``index_levels``
+    the number of grid levels (finer levels keep the search cost independent of the density;
+    None: as many as the capacity makes useful); ``index_recent`` the length of the sorted
+    list of points written since the last merge of the grid tables (merged once three
+    quarters of it are used, ``index.merge_threshold``; None: ``index.recent_length``).
 
     Numerics: ``ridge`` is a relative ridge added to the equilibrated normal equations;
     ``ivh_tol`` a relative tolerance on the hull test (so a stored point is inside its own hull
@@ -170,8 +176,7 @@ class HedgerConfig:
         if self.capacity < 1:
             raise ValueError(f"capacity: must be >= 1, got {self.capacity}")
         if self.capacity > 2 ** 31 - 1 - max(int(self.max_neighbours), 0):
-            # int32 slot indices, and K's canonical order keys padding above every slot
-            # (hedger_jax.canonical).
+            # int32 slots, with K's padding keyed above every slot (hedger_jax.canonical).
             raise ValueError(f"capacity: must be below 2**31 - max_neighbours (int32 slot "
                              f"indices), got {self.capacity}")
         d = self.dim
@@ -304,7 +309,8 @@ class HedgerConfig:
 
     @property
     def index_kind(self) -> str:
-        """The neighbour search in use: "brute" or "grid" ("auto" resolved by capacity)."""
+        """The neighbour search in use: "brute" or "grid" ("auto" resolved by capacity,
+        dimension and scanned fraction: see the AUTO_GRID_* constants)."""
         if self.neighbour_index == "auto":
             low_dim = self.dim <= AUTO_GRID_LOW_DIM
             threshold = AUTO_GRID_CAPACITY_LOW_DIM if low_dim else AUTO_GRID_CAPACITY
@@ -317,10 +323,13 @@ class HedgerConfig:
 
     @property
     def is_discrete(self) -> bool:
+        """Whether the actions are a discrete set (else the continuous box)."""
         return self.discrete_actions is not None
 
     def replace(self, **changes: Any) -> "HedgerConfig":
-        """A copy with some fields changed (re-validated; derived fields recomputed)."""
+        """A copy with some fields changed, re-validated. Unless given, k_thresh is derived
+        again when bandwidth or min_weight changes, k_min when state_dim or action_dim
+        changes, and max_bandwidth when bandwidth changes and it equalled bandwidth."""
         if "bandwidth" in changes or "min_weight" in changes:
             changes.setdefault("k_thresh", None)
         if "bandwidth" in changes and self.max_bandwidth == self.bandwidth:

@@ -8,7 +8,9 @@ Two levels, both explicit:
 * ``configure()`` sets process-wide ``XLA_FLAGS`` that XLA only accepts that way: loops
   compiled into single kernels, a lower LLVM unroll threshold, and the per-program options
   above for every program. Call it first thing, before any JAX computation; the experiments
-  CLI and the benchmarks do. What each setting gains is measured in ``docs/performance.md``.
+  CLI and the benchmarks do.
+
+What each setting gains is measured in ``docs/performance.md``.
 """
 from __future__ import annotations
 
@@ -28,7 +30,8 @@ _OPTIONS: Dict[str, Any] = {
 }
 
 #: Process-wide flags of ``configure``: every loop becomes one kernel (XLA's small-while-loop
-#: hoisting without a size limit), with LLVM's unroll threshold lowered from 300 to 60.
+#: hoisting without a size limit; see ``hedger_jax.kselect``), with LLVM's unroll threshold
+#: lowered from 300 to 60.
 LOOP_KERNEL_FLAG = ("--xla_backend_extra_options="
                     "xla_cpu_small_while_loop_byte_threshold=1125899906842624,"
                     "-unroll-threshold=60")
@@ -70,8 +73,8 @@ def jit(fun: Callable = None, **jit_kwargs: Any):
 
 
 class _LazyJit:
-    """A ``jax.jit`` function built on first use (``compiler_options`` needs the backend);
-    called inside another trace (``jit``, ``vmap``, ``eval_shape``), where JAX accepts no
+    """A ``jax.jit`` function built on first use (``compiler_options`` needs the backend).
+    Called inside another trace (``jit``, ``vmap``, ``eval_shape``), where JAX accepts no
     per-program options, it is the plain ``jax.jit`` function."""
 
     def __init__(self, fun: Callable, jit_kwargs: Dict[str, Any]):

@@ -23,8 +23,9 @@ def default_mode() -> int:
 
 def atomic_write(path: str, write: Callable[[IO[bytes]], None], prefix: str = ".tmp-") -> str:
     """Write a file atomically: ``write(f)`` fills a temporary file in the same folder, which
-    is synced, given ``default_mode()`` permissions and renamed over ``path``. On any error
-    the temporary file is removed and ``path`` is untouched. Returns the path."""
+    is synced, given ``default_mode()`` permissions and renamed over ``path`` (then the folder
+    is synced where the OS allows). On any error the temporary file is removed and ``path``
+    is untouched. Returns the path."""
     path = os.fspath(path)
     folder = os.path.dirname(os.path.abspath(path))
     os.makedirs(folder, exist_ok=True)

@@ -1,25 +1,15 @@
 """``computed_once``: keep XLA from recomputing a small value inside every element of a loop.
 
-XLA's CPU backend fuses cheap producers into their consumers, *duplicating* them: a scalar
-computed by a chain of cheap operations (a dynamic slice, a few multiplies, floors,
-conversions) and then broadcast against an array of R entries is recomputed for each of the R
-entries, in every fusion that uses it. In ``index.note_write`` the level-0 cell key of the new
-point (~30 scalar operations) was recomputed in five O(R) passes (R = 1,024): ~4 us of a
-training step's 16 us replay (measured, jax 0.10.2, 2-core CPU).
-``jax.lax.optimization_barrier`` does not help: XLA removes it before fusion.
+XLA's CPU backend fuses cheap producers into their consumers by duplicating them: a scalar
+made by a chain of cheap operations and broadcast against an array of R entries is
+recomputed for each of the R entries, in every fusion that uses it (e.g. the cell key of a
+new point in ``index.note_write``). ``jax.lax.optimization_barrier`` does not help: XLA
+removes it before fusion.
 
-``computed_once(x)`` returns x unchanged (bit for bit), computed by an operation XLA does not
-fuse into its consumers (a reduce-window: the maximum of x and the dtype's lowest value over a
-window of two): the producer chain is evaluated once, in its own small kernel, and the
-consumers read the result. Where a future XLA simplified it away, results would stay the same
-and only the saving would be lost.
-
-The pair is reduced with stride 2 (output: x's shape). The earlier form, the first element of
-a running maximum over the pair [x, x], computed the producer chain twice (the stacked pair)
-and a reduce-window output twice x's size. Paired, bit-identical, 2-core CPU: training 1.06x /
-1.15x discrete / continuous at 2e4 slots, 1.22x / 1.07x at 3e5; batched selection 1.16x /
-1.08x discrete / continuous at 1e3 slots, 1.04-1.05x at 1e4 and 3e5. A plain reduction over
-the pair fused the producer chain into a slow reduction loop (0.80x at 1e3, continuous).
+``computed_once(x)`` passes x through an operation XLA does not fuse into its consumers: a
+reduce-window of stride 2 over the pair [x, lowest value of the dtype]. The producer chain
+then runs once, in its own small kernel. Should a future XLA simplify it away, results stay
+the same and only the saving is lost.
 """
 from __future__ import annotations
 
@@ -28,7 +18,9 @@ import jax.numpy as jnp
 
 
 def computed_once(x: jax.Array) -> jax.Array:
-    """x (any shape, numeric or bool dtype) unchanged, materialised once (see module doc)."""
+    """x (any shape, numeric or bool dtype) unchanged, bit for bit (NaN, -0.0 included),
+    computed once in its own kernel rather than inside every consumer. Works under ``vmap``
+    and ``grad``."""
     x = jnp.asarray(x)
     if x.dtype == jnp.bool_:
         return computed_once(x.astype(jnp.int32)) != 0

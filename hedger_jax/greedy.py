@@ -3,13 +3,16 @@
 Continuous actions use the paper's search (after Brent 1973): ``greedy_samples`` evenly spaced
 actions over the bounds, then successive parabolic interpolation through the best sample and
 its two neighbours, sampling at the fitted maximum, until two successive maxima are closer
-than ``greedy_tol`` or ``greedy_iters`` refinements were made (a ``lax.while_loop`` over at
-most ``greedy_iters`` refinements, so it jits and vmaps). The answer is always the best *evaluated* sample, so it never leaves
-the bounds and is never worse than the initial grid.
+than ``greedy_tol`` or ``greedy_iters`` refinements were made (a ``lax.while_loop``, so it
+jits and vmaps). The answer is always the best *evaluated* sample, so it never leaves the
+bounds and is never worse than the initial grid.
 
 "Don't know" handling: an unknown candidate counts as ``default_value`` (as a table
 initialised with that value would); if every evaluated candidate is unknown the greedy policy
 acts at random (``known`` is False).
+
+Every function taking ``params`` accepts a ``HedgerParams`` (traced hyperparameters) or None
+for the config's values.
 """
 from __future__ import annotations
 
@@ -35,40 +38,43 @@ class GreedySets(NamedTuple):
     chosen: jax.Array
     has_chosen: jax.Array
 
+
+#: The value of an unfilled sample slot: below every evaluated value.
 _NEG = -jnp.inf
 
 
 def _first_index(hit: jax.Array) -> jax.Array:
-    """Index of the first True of hit (m,) (m if none), by an integer minimum."""
+    """Index int32 () of the first True of hit (m,) (m if none), by an integer minimum."""
     m = hit.shape[-1]
     return jnp.min(jnp.where(hit, jnp.arange(m, dtype=jnp.int32), m))
 
 
 def _argmin_nonneg(x: jax.Array) -> jax.Array:
-    """``jnp.argmin`` of x (m,) float32 >= 0 or +inf, without NaN: non-negative floats order
-    as their bits, so two integer minima (the smallest key, then its first index) replace
-    XLA's float argmin (a serial loop with NaN checks). Same index, ties to the first."""
+    """``jnp.argmin`` of x (m,) float32 >= 0 or +inf, no NaN -> int32 (): non-negative floats
+    order as their bits, so two integer minima (the smallest key, then its first index)
+    replace XLA's float argmin, a serial loop with NaN checks. Same index, ties to the first."""
     key = jax.lax.bitcast_convert_type(x, jnp.int32)
     return jnp.minimum(_first_index(key == jnp.min(key)), x.shape[-1] - 1)
 
 
 def _argmax_float(x: jax.Array) -> jax.Array:
-    """``jnp.argmax`` of x (m,) float32 without NaN (-inf allowed), ties to the first: the
-    floats mapped to integers of the same order (-0.0 first made +0.0, as argmax sees them
-    equal)."""
+    """``jnp.argmax`` of x (m,) float32 without NaN (-inf allowed) -> int32 (), ties to the
+    first: the floats mapped to integers of the same order (-0.0 first made +0.0, as argmax
+    sees them equal)."""
     bits = jax.lax.bitcast_convert_type(x + 0.0, jnp.int32)
     key = bits ^ ((bits >> 31) & 0x7FFFFFFF)
     return jnp.minimum(_first_index(key == jnp.max(key)), x.shape[-1] - 1)
 
 
 def _bracket(xs: jax.Array, fs: jax.Array, filled: jax.Array):
-    """Best filled sample and its nearest filled neighbours on each side (fallback: same side).
+    """Best filled sample and its nearest filled neighbours on each side (at a boundary, the
+    two nearest on the side there is).
 
-    xs, fs, filled (m,) -> three (x, f) pairs with x_l < x_b < x_r where possible.
+    xs, fs, filled (m,) -> (three (x, f) pairs with x_l < x_b < x_r where possible, index of
+    the best).
     """
-    # Integer forms of argmax / argmin (same indices): the search runs this once per
-    # refinement, and XLA's float ones are serial loops with NaN checks (training 1.02x,
-    # continuous mountain car at 3e5 slots, paired, results identical).
+    # Integer forms of argmax / argmin (same indices): this runs once per refinement, and
+    # XLA's float ones are serial loops with NaN checks.
     fs_m = jnp.where(filled, fs, _NEG)
     b = _argmax_float(fs_m)
     xb = xs[b]
@@ -92,7 +98,8 @@ def _bracket(xs: jax.Array, fs: jax.Array, filled: jax.Array):
 
 
 def _parabola_vertex(p0, p1, p2):
-    """Vertex of the parabola through three points and whether it is a maximum."""
+    """Vertex x () of the parabola through three (x, f) points, and whether it is a maximum
+    (bool (); else the vertex is the middle point's x)."""
     (x0, f0), (x1, f1), (x2, f2) = p0, p1, p2
     d01 = jnp.where(x1 != x0, (f1 - f0) / (x1 - x0), 0.0)
     d12 = jnp.where(x2 != x1, (f2 - f1) / (x2 - x1), 0.0)
@@ -114,12 +121,12 @@ def search_1d(f: Callable[[jax.Array], Tuple[jax.Array, ...]], low: float, high:
     """Maximise f over [low, high]; f: x () -> (value (), known ()), or with ``with_aux``
     (value (), known (), aux): aux any pytree that f computes along (e.g. a neighbour set).
 
-    ``initial``: optional (values (n_samples,), known (n_samples,)) of f at
+    ``initial``: optional (values (n_samples,), known (n_samples,)[, aux]) of f at
     ``search_grid(low, high, n_samples)``, when the caller evaluated them in a batch of its own.
-    Returns (x_best (), f_best (), any_known ()): the best evaluated sample; with
-    ``with_count`` also the number of refinement evaluations (int32 (), at most ``iters``);
-    with ``with_aux`` then also (aux of the grid's samples, leading axis n_samples; aux of the
-    best sample).
+    Returns (x_best (), f_best (), any_known ()): the best evaluated sample (ties to the
+    first); with ``with_count`` also the number of refinement evaluations (int32 (), at most
+    ``iters``); with ``with_aux`` then also (aux of the grid's samples, leading axis
+    n_samples; aux of the best sample).
     """
     n_total = n_samples + iters
     grid = search_grid(low, high, n_samples)
@@ -160,11 +167,9 @@ def search_1d(f: Callable[[jax.Array], Tuple[jax.Array, ...]], low: float, high:
         go = worth & (i + 1 < iters) & ~(jnp.abs(vertex - prev) < tol)
         return (i + 1, xs, fs, filled, vertex, nxt, go, any_known, best_f, best_aux)
 
-    # A while loop, not a fixed-length scan: a search that has converged (or found no concave
-    # bracket, e.g. while nothing is known) stops paying for evaluations. Each evaluation is
-    # of a new concave vertex: one that would be discarded (not a maximum) or repeat a sample
-    # is never made (same result as evaluating it, as in the paper's loop). Under vmap the
-    # loop runs until every search is done; the result is the same either way.
+    # A while loop, so a search that has converged (or found no concave bracket, e.g. while
+    # nothing is known) stops evaluating. A vertex that is no maximum or repeats a sample is
+    # not evaluated: the paper's loop would discard it, so the result is the same.
     vertex, worth = propose(xs, fs, filled)
     b0 = _argmax_float(jnp.where(filled, fs, _NEG))
     init = (jnp.zeros((), jnp.int32), xs, fs, filled, jnp.float32(jnp.nan), vertex,
@@ -179,7 +184,8 @@ def search_1d(f: Callable[[jax.Array], Tuple[jax.Array, ...]], low: float, high:
 
 def maximise_1d(f: Callable[[jax.Array], jax.Array], low: float, high: float,
                 n_samples: int = 11, iters: int = 8, tol: float = 1e-3):
-    """Maximise a scalar function f: x () -> () over [low, high] -> (x_best (), f_best ())."""
+    """Maximise a scalar function f: x () -> () over [low, high] -> (x_best (), f_best ()),
+    by the greedy search of continuous actions (module doc)."""
     x, fx, _ = search_1d(lambda x: (f(x), jnp.ones((), bool)), low, high, n_samples, iters, tol)
     return x, fx
 
@@ -190,7 +196,8 @@ def _packed(p: Prediction) -> jax.Array:
 
 
 def _discrete_values(config: HedgerConfig, memory: Memory, state: jax.Array, params=None):
-    """-> (actions (n, A), values (n,), known (n,), K of each (n, k) as ``_packed``)."""
+    """Every discrete action's prediction: state (S,) -> (actions (n, A), values (n,),
+    known (n,), K of each (n, k) as ``_packed``)."""
     actions = jnp.asarray(config.discrete_actions, jnp.float32)          # (n, A)
     p = jax.vmap(lambda a: predict_detailed(config, memory, state, a, params))(actions)
     return actions, p.value, p.known, _packed(p)
@@ -198,6 +205,7 @@ def _discrete_values(config: HedgerConfig, memory: Memory, state: jax.Array, par
 
 def _continuous_search(config: HedgerConfig, memory: Memory, state: jax.Array, initial=None,
                        with_aux: bool = False, params=None):
+    """``search_1d`` of Q(state, a) over the action interval (with_aux: K of each sample)."""
     def f(a):
         p = predict_detailed(config, memory, state, a[None], params)
         return (p.value, p.known, _packed(p)) if with_aux else (p.value, p.known)
@@ -216,8 +224,8 @@ def greedy_candidates(config: HedgerConfig) -> jax.Array:
 
 def greedy_value_from(config: HedgerConfig, memory: Memory, state: jax.Array,
                       values: jax.Array, known: jax.Array, params=None):
-    """``greedy_value`` given Q(state, a) (values, known (n,)) at ``greedy_candidates``
-    (evaluated by the caller, e.g. batched with other queries). Same result."""
+    """``greedy_value`` given Q(state, a) at ``greedy_candidates`` (values, known (n,)),
+    evaluated by the caller, e.g. batched with other queries. Same result."""
     if config.is_discrete:
         return jnp.max(values), jnp.any(known)
     _, value, any_known = _continuous_search(config, memory, state, (values, known),
@@ -229,7 +237,7 @@ def greedy_value(config: HedgerConfig, memory: Memory, state: jax.Array, params=
     """max_a Q(state, a) as used by training: state (S,) -> (value (), known ()).
 
     Deterministic (no key). Unknown candidates count as ``default_value``; ``known`` says
-    whether any candidate was known.
+    whether any candidate was known. params: ``HedgerParams``, or None for the config's.
     """
     expect("state", state, (config.state_dim,))
     if config.is_discrete:
@@ -250,7 +258,7 @@ def greedy_action_from_uniform(config: HedgerConfig, memory: Memory, state: jax.
     U[0, 1) draws (tie-breaks, then the random action when nothing is known)."""
     if config.is_discrete:
         return greedy_choice(config, memory, state, u, params)[:3]
-    # Without the neighbour sets: the search then carries none through its loop.
+    # Without the neighbour sets, so the search carries none through its loop.
     return _continuous_choice(config, u, *_continuous_search(config, memory, state,
                                                              params=params), params=params)
 
@@ -278,8 +286,8 @@ def greedy_choice(config: HedgerConfig, memory: Memory, state: jax.Array, u: jax
 
 
 def _continuous_choice(config: HedgerConfig, u: jax.Array, x, value, any_known, params=None):
-    """The search's best sample, or (nothing known) a uniformly random action from u:
-    -> (action (A,), value (), known ())."""
+    """The search's best sample, or (nothing known) a uniformly random action from u (A,)
+    with value ``default_value``: -> (action (A,), value (), known ())."""
     low = jnp.asarray(config.action_low, jnp.float32)
     high = jnp.asarray(config.action_high, jnp.float32)
     rand = jnp.minimum(low + u * (high - low), high)
@@ -293,9 +301,10 @@ def greedy_action(config: HedgerConfig, memory: Memory, state: jax.Array, key: j
     """The greedy action: state (S,), key -> (action (A,), value (), known ()).
 
     Ties among the best discrete actions are broken at random; when nothing is known the
-    action is uniformly random (from the set, or in the box) and ``known`` is False. The
-    randomness is one draw of ``hedger_jax.rng`` (one fused operation, not ``jax.random``'s
-    loops).
+    action is uniformly random (from the set, or in the box), its value ``default_value``,
+    and ``known`` is False. The randomness is one ``jax.random.uniform`` draw of
+    ``greedy_draws(config)`` numbers from ``key``. params: ``HedgerParams``, or None for the
+    config's values.
     """
     expect("state", state, (config.state_dim,))
     expect_key("key", key)

@@ -1,20 +1,17 @@
-"""A loop with a traced trip count that stays cheap under ``vmap``: ``masked_fori_loop``.
+"""Control flow that stays cheap under ``vmap``: ``masked_fori_loop`` and ``batch_cond``.
 
-Why: ``jax.lax.fori_loop(0, n, ...)`` with a traced ``n`` is a ``while_loop``; when ``n`` is
-batched (``vmap`` over seeds, each seed with its own episode length), JAX batches that loop by
-running it until every member is done and, after every trip, *selecting* between the new and
-the old carry for every member: an O(size of the carry) pass per trip. When the carry is a
-HEDGER memory (10^4-10^6 slots), that pass -- and the copy XLA inserts for it -- costs far more
-than the training step itself (measured: vmapped training over 8 seeds ran at 0.4x the
-per-seed rate of one seed).
+``jax.lax.fori_loop(0, n, ...)`` with a batched trip count ``n`` (vmapped seeds, each with its
+own episode length) runs until every member is done and after every trip selects between
+the new and the old carry of every member: a pass over the whole carry (a HEDGER memory of
+10^4-10^6 slots) per trip, far dearer than the step. ``masked_fori_loop`` runs one loop of
+``max(n)`` trips and tells the body which members are still active; the body masks its own
+writes (cheap: a training step with ``valid=False`` already writes nothing).
 
-``masked_fori_loop(n, body, carry)`` calls ``body(i, carry, active)`` for i = 0 .. n-1; the
-body must leave ``carry`` unchanged where ``active`` is False (masking its own writes, which
-is cheap: a training step with ``valid=False`` already writes nothing). Unbatched, it is a
-plain ``fori_loop`` with ``active=True``. Under ``vmap`` with a batched ``n`` its custom
-batching rule runs one loop of ``max(n)`` trips with a shared counter ``i``, each member active
-while ``i < n`` of its own: no select over the carry. Nested ``vmap`` is handled by applying
-the same rule again at every level.
+``lax.cond`` with a batched predicate runs both branches for every member; ``batch_cond``
+runs the true branch only when some member needs it (optionally for those members only).
+
+Both are ``custom_vmap`` functions whose batching rules apply again at every nested ``vmap``
+level, and give each member exactly the result of the plain loop or cond.
 """
 from __future__ import annotations
 
@@ -28,17 +25,19 @@ from jax.extend.core import ClosedJaxpr, Jaxpr, jaxpr_as_fun
 
 def masked_fori_loop(n: jax.Array, body: Callable[[jax.Array, Any, jax.Array], Any],
                      carry: Any) -> Any:
-    """``for i in range(n): carry = body(i, carry, active)``, vmap-friendly (see module doc).
+    """``for i in range(n): carry = body(i, carry, active)``, cheap under ``vmap``.
 
     n: int () trip count (traced or static, >= 0); body(i int32 (), carry, active bool ()) ->
-    carry with the same structure, unchanged where ``active`` is False; carry: a pytree.
+    carry of the same structure, which must be unchanged where ``active`` is False; carry: a
+    pytree. Unbatched it is a plain ``fori_loop`` with ``active`` True; under ``vmap`` with a
+    batched n, one loop of max(n) trips, each member active while i < its own n.
     """
     fn, consts = _hoist_closure(body, carry)
     return _loop(fn)(jnp.asarray(n, jnp.int32), carry, consts)
 
 
 def _consts_as_arguments(closed: ClosedJaxpr) -> Callable:
-    """A function of (*consts, *args) evaluating ``closed`` with its constants passed in."""
+    """A function of (*consts, *args) that evaluates ``closed`` with its constants passed in."""
     j = closed.jaxpr
     info = j.debug_info
     if info is not None and info.arg_names is not None:
@@ -50,8 +49,8 @@ def _consts_as_arguments(closed: ClosedJaxpr) -> Callable:
 
 def _hoist_closure(body: Callable, carry: Any):
     """``body`` as ``fn(i, carry, active, *consts)`` with every value it closes over (traced or
-    not, any dtype) passed explicitly, so that the batching rule sees which are batched.
-    (``jax.closure_convert`` hoists only float tracers.)"""
+    not, any dtype) passed explicitly, so that the batching rule sees which are batched
+    (``jax.closure_convert`` hoists only float tracers)."""
     example = (jnp.zeros((), jnp.int32), carry, jnp.ones((), bool))
     flat, in_tree = jax.tree_util.tree_flatten(example)
     carry_tree = jax.tree_util.tree_structure(carry)
@@ -116,17 +115,17 @@ def batch_cond(pred: jax.Array, true_fn: Callable[[Any], Any], false_fn: Callabl
                operand: Any, *, compact: int = 0, equal: bool = False) -> Any:
     """``lax.cond(pred, true_fn, false_fn, operand)`` that stays cheap under ``vmap``.
 
-    ``lax.cond`` with a batched predicate runs both branches for every member and selects,
-    whatever the predicates. Here, under ``vmap``, the true branch runs only when *some*
-    member's predicate holds; otherwise only the false branch runs. Meant for a rare,
-    expensive branch such as merging a memory's neighbour index. Per-member results are
-    exactly those of ``lax.cond``.
+    ``lax.cond`` with a batched predicate runs both branches for every member and selects.
+    Here, under ``vmap``, the true branch runs only when *some* member's predicate holds;
+    otherwise only the false branch runs. Meant for a rare, expensive branch such as merging
+    a memory's neighbour index. Per-member results are exactly those of ``lax.cond``; nested
+    ``vmap`` gets the same treatment at every level.
 
     compact (static int): 0 -- the true branch, when it runs, runs for every member (then
-    selected per member). G > 0 -- only the members whose predicate holds run it, G at a time
-    (gathered into groups of G, results scattered back): for a branch that few members of a
-    large batch need, e.g. one query of 4096 that must be searched again. A batch of at most
-    G members uses groups of min(G, 4) (``_SMALL_GROUP``); one of at most 4 runs whole.
+    selected per member). G > 0 -- only the members whose predicate holds run it, gathered
+    G at a time and scattered back: for a branch that few members of a large batch need. A
+    batch of at most G members uses groups of min(G, ``_SMALL_GROUP``) and runs whole when
+    it has no more members than that.
 
     equal (static bool): the branches give the same results (the true one is a shortcut),
     so under ``vmap`` with a batched predicate only the false branch runs, for every member.
@@ -160,8 +159,8 @@ def _hoist_branch(fn: Callable, operand: Any):
 
 
 def _compacted(axis_size: int, group: int, pred, operand, vt, tconsts, tc_b, falses):
-    """The true branch for the members where ``pred`` (axis_size,) holds, ``group`` at a time,
-    written over ``falses`` (the false branch's results for every member)."""
+    """The true branch for the members where ``pred`` bool (axis_size,) holds, ``group`` at a
+    time, written over ``falses`` (the false branch's results, leading axis axis_size)."""
     n_pad = -(-axis_size // group) * group
     lanes = jnp.arange(axis_size, dtype=jnp.int32)
     # ids[j]: the j-th member whose predicate holds; axis_size (dropped on write) beyond them.
@@ -180,17 +179,13 @@ def _compacted(axis_size: int, group: int, pred, operand, vt, tconsts, tc_b, fal
     return jax.lax.fori_loop(0, n_groups, body, falses)
 
 
-#: Group size of ``batch_cond(..., compact=G)`` for a batch no larger than G: groups of
-#: ``min(G, _SMALL_GROUP)`` when the batch is larger than that, else (a batch of at most 4)
-#: every member runs the branch when one needs it. Measured (grid index, 3e5 slots, continuous
-#: mountain car: batches of 11-12 candidate actions, of which a few go on scanning or are
-#: rescanned): groups of 4 / 2 / 1 made training 1.33 / 1.23 / 1.37x faster than running the
-#: whole batch (same level target); for discrete actions (batches of 3-4) groups of 1 were
-#: 0.90x at 3e5 and 1.02x at 2e4, so batches of at most 4 are left whole.
+#: Largest group of ``batch_cond(..., compact=G)`` in a batch of at most G members; a batch
+#: no larger than this runs the branch whole, where gathering would save nothing.
 _SMALL_GROUP = 4
 
 
 def _cond(tfn: Callable, ffn: Callable, compact: int = 0, equal: bool = False) -> Callable:
+    """The custom-vmap cond for hoisted branches ``tfn(operand, *tconsts)``, ``ffn(...)``."""
     @custom_vmap
     def cond(pred, operand, tconsts, fconsts):
         return jax.lax.cond(pred, lambda o: tfn(o, *tconsts), lambda o: ffn(o, *fconsts),

@@ -8,37 +8,29 @@ paper's formulation is X = [1, zc] (k, p = d + 1):
 * the query's design row is x_q = e_0, and the IVH test is x_q'(X'X)^-1 x_q <= max_i v_ii,
   v_ii = x_i'(X'X)^-1 x_i.
 
-Why an intercept column: with it the hat-matrix diagonal is v_ii = 1/n + Mahalanobis distance
-of point i from the neighbours' centroid, so the hull is Cook's ellipsoid centred on the
-data and the test is invariant under affine changes of the inputs. Without it the ellipsoid
-would be centred on the coordinate origin, which means nothing here.
+Why an intercept column: with it v_ii = 1/n + the Mahalanobis distance of point i from the
+neighbours' centroid, so the hull is Cook's ellipsoid centred on the data and the test is
+invariant under affine changes of the inputs (without it the ellipsoid would be centred on
+the coordinate origin, which means nothing here).
 
-Computed through the centroid (the same quantities, exactly, in exact arithmetic): with the
-neighbours' centroid m and centred scatter C = sum (z_i - m)(z_i - m)',
-x_q'(X'X)^-1 x_q = 1/n + m'C^-1 m and v_ii = 1/n + (z_i - m)'C^-1 (z_i - m); the weighted fit
-is y_w - b'm_w with b = C_w^-1 sum w_i (z_i - m_w)(y_i - y_w) (weighted centroid m_w, mean
-value y_w, weighted scatter C_w). Only d x d systems remain, centred on the data (better
-conditioned than the (d + 1) x (d + 1) normal equations: measured against float64, half the
-median and a third of the 99th-percentile error of the query-centred normal equations), and
-both are factorised together (on XLA's CPU backend per-operation overhead is most of a
-training step: 25 -> 15 operations per fit inside a loop).
+Computed through the centroid (the same quantities in exact arithmetic): with centroid m and
+centred scatter C = sum (z_i - m)(z_i - m)', x_q'(X'X)^-1 x_q = 1/n + m'C^-1 m and
+v_ii = 1/n + (z_i - m)'C^-1 (z_i - m); the weighted fit is y_w - b'm_w with
+b = C_w^-1 sum w_i (z_i - m_w)(y_i - y_w) (weighted centroid m_w, mean value y_w, weighted
+scatter C_w). Only d x d systems remain, centred on the data, so better conditioned than
+the (d + 1) x (d + 1) normal equations; both are factorised together.
 
 Numerics (float32): each scatter matrix is equilibrated (scaled to a unit diagonal, an exact
-change of variables), then a tiny ridge is added before it is inverted. The values ``y``
+change of variables), then a tiny ridge is added before it is factorised. The values ``y``
 enter only linearly, so tiny values (gamma^100 ~ 1e-10) keep their relative precision: there
 is no absolute epsilon on them.
 
 Layout: internally the neighbours are feature-major, ``zt`` (d, k) (``local_fit_columns``;
-``local_fit`` takes (k, d) and transposes). Every sum over the k neighbours is then a
-reduction along the minor axis, which XLA's CPU backend vectorises across the neighbours;
-with (k, d) rows it emitted, for each of the ~30 sums, a scalar loop over the k neighbours
-that recomputed the centred rows (a profile of a single fit: two such loops were a quarter of
-its samples). The hull test compares every leverage with the query's (an ``any``) instead of
-taking their maximum first: the same answer for finite values (x -> (1 + tol)(1/n + x) is
-non-decreasing in floating point too), without XLA's NaN-propagating maximum, a serial loop
-over the k neighbours (13 % of the samples). Paired, 2-core Intel Xeon, 3e5 slots: one fit
-(``predict_from_neighbours``) 0.61 -> 0.39 us, 11 vmapped 6.0 -> 4.4 us; continuous
-mountain-car training 1.05x.
+``local_fit`` takes (k, d) and transposes), so every sum over the k neighbours is a reduction
+along the minor axis, which XLA's CPU backend vectorises. The hull test compares every
+leverage with the query's (an ``any``) instead of taking their maximum first: the same answer
+for finite values (x -> (1 + tol)(1/n + x) is non-decreasing in floating point too), without
+XLA's NaN-propagating maximum, a serial loop.
 """
 from __future__ import annotations
 
@@ -58,7 +50,8 @@ class LocalFit(NamedTuple):
 
 
 def kernel_weights(sqdist: jax.Array, bandwidth: float, mask: jax.Array) -> jax.Array:
-    """Gaussian kernel kappa_i = exp(-d_i^2 / h^2) on masked squared distances (k,) -> (k,)."""
+    """Gaussian kernel kappa_i = exp(-d_i^2 / h^2): sqdist (k,), bandwidth h (float or
+    traced ()), mask (k,) -> float32 (k,), 0 where masked."""
     return jnp.where(mask, jnp.exp(-sqdist / jnp.float32(bandwidth) ** 2), 0.0)
 
 
@@ -71,11 +64,11 @@ def design_matrix(zc: jax.Array, mask: jax.Array) -> jax.Array:
 def _cholesky(a: jax.Array) -> jax.Array:
     """Lower Cholesky factors of symmetric positive-definite matrices a (..., p, p).
 
-    The Cholesky-Banachiewicz recurrence unrolled into scalar jnp ops (p (p + 1) / 2 entries):
-    on CPU a LAPACK call per tiny matrix costs more than the arithmetic, and the unrolled ops
-    fuse (and vectorise under vmap). Stable where the adjugate is not: for a nearly singular
-    (collinear) neighbourhood the adjugate's determinant carries the rounding of the
-    ill-conditioned direction into the well-conditioned ones (a 10 % slope error, measured).
+    The Cholesky-Banachiewicz recurrence unrolled into scalar jnp ops: on the CPU a LAPACK
+    call per tiny matrix costs more than the arithmetic, and the unrolled ops fuse (and
+    vectorise under vmap). Cholesky, not the adjugate: for a nearly collinear neighbourhood
+    the adjugate's determinant spreads the rounding of the ill-conditioned direction into
+    the well-conditioned ones.
     """
     p = a.shape[-1]
     L = [[None] * p for _ in range(p)]
@@ -96,7 +89,7 @@ def _cholesky(a: jax.Array) -> jax.Array:
 
 
 def _solve_lower(L: jax.Array, b: jax.Array) -> jax.Array:
-    """Forward substitution: x with L x = b, L (p, p) lower, b (p, ...)."""
+    """Forward substitution: L (p, p) lower, b (p, ...) -> x (p, ...) with L x = b."""
     x = []
     for i in range(L.shape[-1]):
         acc = b[i]
@@ -107,7 +100,7 @@ def _solve_lower(L: jax.Array, b: jax.Array) -> jax.Array:
 
 
 def _solve_upper_transposed(L: jax.Array, b: jax.Array) -> jax.Array:
-    """Back substitution with L': x with L' x = b, L (p, p) lower, b (p,)."""
+    """Back substitution: L (p, p) lower, b (p,) -> x (p,) with L' x = b."""
     p = L.shape[-1]
     x = [None] * p
     for i in range(p - 1, -1, -1):
@@ -119,8 +112,9 @@ def _solve_upper_transposed(L: jax.Array, b: jax.Array) -> jax.Array:
 
 
 def _equilibrated_cholesky(C: jax.Array, ridge: float):
-    """Scatter matrices C (..., p, p) -> (L, inv_s) with L L' = D^-1 C D^-1 + ridge I,
-    D = diag(sqrt(diag C)) = diag(1 / inv_s) (equilibration: an exact change of variables)."""
+    """Scatter matrices C (..., p, p) -> (L (..., p, p), inv_s (..., p)) with
+    L L' = D^-1 C D^-1 + ridge I, D = diag(sqrt(diag C)) = diag(1 / inv_s) (equilibration:
+    an exact change of variables; a zero diagonal entry is left unscaled)."""
     p = C.shape[-1]
     diag = jnp.stack([C[..., i, i] for i in range(p)], -1)
     inv_s = jax.lax.rsqrt(jnp.where(diag > 0, diag, 1.0))
@@ -130,10 +124,11 @@ def _equilibrated_cholesky(C: jax.Array, ridge: float):
 
 
 def _fit_parts(zt: jax.Array, y: jax.Array, w: jax.Array, m: jax.Array, ridge: float):
-    """Centroids and both scatter factors at once, from feature-major neighbours zt (d, k):
-    -> (n, mean (d,), u (d, k) centred columns, factor of C, mean_w (d,), y_w, factor of
-    C_w, c_w (d,)); m: mask as float (k,). A factor is (L, inv_s) of
-    ``_equilibrated_cholesky``. Every sum runs over the minor (neighbour) axis."""
+    """Centroids and both scatter factors at once, from feature-major neighbours zt (d, k),
+    values y (k,), weights w (k,) and the mask as float m (k,) -> (n (), mean (d,), u (d, k)
+    centred masked columns, factor of C, mean_w (d,), y_w (), factor of C_w, c_w (d,)).
+    A factor is (L, inv_s) of ``_equilibrated_cholesky``. Every sum runs over the minor
+    (neighbour) axis."""
     d = zt.shape[0]
     first = jnp.sum(jnp.concatenate([m[None, :] * zt, w[None, :] * zt, (w * y)[None, :],
                                      m[None, :], w[None, :]], axis=0), axis=-1)
@@ -155,9 +150,9 @@ def _fit_parts(zt: jax.Array, y: jax.Array, w: jax.Array, m: jax.Array, ridge: f
 
 
 def _hull(n, mean, u, chol, mask, tol):
-    """1/n + m'C^-1 m <= (1 + tol)(1/n + max_i u_i'C^-1 u_i), C^-1 through its factor; u
-    (d, k). Written as "for some masked i, ... <= (1 + tol)(1/n + u_i'C^-1 u_i)": the same
-    answer for finite values (module doc), False without masked neighbours as before."""
+    """The hull test 1/n + m'C^-1 m <= (1 + tol)(1/n + max_i u_i'C^-1 u_i), C^-1 through its
+    factor, u (d, k) -> bool (). Evaluated as "for some masked i, ..." (the same answer for
+    finite values: module doc); False without masked neighbours."""
     L, inv_s = chol
     cols = jnp.concatenate([mean[:, None], u], axis=1) * inv_s[:, None]   # (d, k + 1)
     y = _solve_lower(L, cols)                                           # (d, k + 1)
@@ -167,7 +162,8 @@ def _hull(n, mean, u, chol, mask, tol):
 
 
 def _intercept(mean_w, y_w, chol, cw):
-    """y_w - b'm_w with b = C_w^-1 c_w (through the equilibrated factor)."""
+    """The weighted fit's intercept y_w - b'm_w () with b = C_w^-1 c_w (through the
+    equilibrated factor)."""
     L, inv_s = chol
     b = _solve_upper_transposed(L, _solve_lower(L, cw * inv_s)) * inv_s
     return y_w - _sum_small(b * mean_w)
@@ -182,7 +178,8 @@ def _sum_small(x: jax.Array) -> jax.Array:
 
 
 def hull_contains(X: jax.Array, mask: jax.Array, ridge: float, tol: float) -> jax.Array:
-    """IVH test for the query at the origin of the centred design X = [1, zc] (k, p) -> bool ().
+    """IVH test for the query at the origin of the centred design: X = [1, zc] (k, p),
+    mask (k,) -> bool ().
 
     Inside iff e_0'(X'X)^-1 e_0 <= (1 + tol) * max_i x_i'(X'X)^-1 x_i over masked rows.
     """
@@ -192,8 +189,8 @@ def hull_contains(X: jax.Array, mask: jax.Array, ridge: float, tol: float) -> ja
 
 
 def weighted_intercept(X: jax.Array, y: jax.Array, w: jax.Array, ridge: float) -> jax.Array:
-    """Intercept of the weighted least-squares fit of y (k,) on X = [1, zc] (k, p), weights
-    w (k,) (zero on the rows to leave out)."""
+    """Intercept () of the weighted least-squares fit of y (k,) on X = [1, zc] (k, p) with
+    weights w (k,) (zero on the rows to leave out)."""
     *_, mean_w, y_w, chol_w, cw = _fit_parts(X[:, 1:].T, y, w, (w > 0).astype(X.dtype), ridge)
     return _intercept(mean_w, y_w, chol_w, cw)
 
@@ -203,9 +200,9 @@ def local_fit(zc: jax.Array, y: jax.Array, w: jax.Array, mask: jax.Array, *,
     """Fit at the query from its centred neighbour set.
 
     zc (k, d) neighbour - query; y (k,) values; w (k,) kernel weights (0 where masked);
-    mask (k,) bool. Returns ``LocalFit(value (), inside ())``. Finite for any input that is
-    finite (empty sets, duplicates, collinear points): the ridge keeps the inverses finite.
-    ``local_fit_columns`` with zc.T.
+    mask (k,) bool; ridge, ivh_tol floats or traced (). Returns ``LocalFit(value (),
+    inside ())``. Finite for any finite input (empty sets, duplicates, collinear points):
+    the ridge keeps the inverses finite. ``local_fit_columns`` with zc.T.
     """
     return local_fit_columns(zc.T, y, w, mask, ridge=ridge, ivh_tol=ivh_tol)
 
@@ -213,7 +210,8 @@ def local_fit(zc: jax.Array, y: jax.Array, w: jax.Array, mask: jax.Array, *,
 def local_fit_columns(zt: jax.Array, y: jax.Array, w: jax.Array, mask: jax.Array, *,
                       ridge: float = 1e-6, ivh_tol: float = 1e-3) -> LocalFit:
     """``local_fit`` from feature-major neighbours: zt (d, k) = neighbour - query, one column
-    per neighbour (the layout of ``Memory.points``' gathered columns); y, w, mask (k,)."""
+    per neighbour (the layout of ``Memory.points``' gathered columns); y, w, mask (k,).
+    Entries where ``mask`` is False are ignored whatever their y and w."""
     y = jnp.where(mask, y, 0.0)
     w = jnp.where(mask, w, 0.0)
     n, mean, u, chol, mean_w, y_w, chol_w, cw = _fit_parts(zt, y, w, mask.astype(zt.dtype),

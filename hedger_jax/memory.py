@@ -2,8 +2,8 @@
 
 ``Memory`` is a pytree of preallocated arrays, so every operation on it is jittable and
 vmappable (a batch of memories is one seed each). Points are stored *scaled* (see
-``HedgerConfig.input_scale``) and column-major, shape (d, capacity): the distance pass over
-(d, N) is several times faster on CPU than over (N, d).
+``HedgerConfig.input_scale``) and feature-major, shape (d, capacity), so the distance pass
+is d elementwise passes over contiguous rows.
 
 Slots ``[0, size)`` hold valid points under ``full_policy="error"``; under
 ``"overwrite_oldest"`` the memory is a ring buffer (``head`` is the next slot to write) and
@@ -29,7 +29,9 @@ from hedger_jax.config import HedgerConfig
 from hedger_jax.params import HedgerParams, resolve
 from hedger_jax.validation import expect
 
+#: ``Memory.flags`` bit: a point was dropped because the memory was full ("error" policy).
 FLAG_FULL = 1
+#: ``Memory.flags`` bit: a NaN/inf value or point was refused.
 FLAG_NONFINITE = 2
 
 
@@ -50,9 +52,9 @@ class Memory(NamedTuple):
       size:   int32 () number of valid points (<= capacity).
       head:   int32 () next slot to write.
       flags:  int32 () error bits (``FLAG_FULL``, ``FLAG_NONFINITE``).
-      index:  the neighbour index (``hedger_jax.index.GridIndex``) when the config uses one
-              (``neighbour_index="grid"``), else ``None`` (no leaves). Rebuilt by
-              ``refresh_index``; always exact, even when stale.
+      index:  the neighbour index (``hedger_jax.index.GridIndex``) when the config uses the
+              grid search (``HedgerConfig.index_kind``), else ``None`` (no leaves). Kept up
+              to date by ``refresh_index``; searches through it are exact even when stale.
     """
 
     points: jax.Array
@@ -77,7 +79,8 @@ class Neighbours(NamedTuple):
 
 
 def init_memory(config: HedgerConfig) -> Memory:
-    """An empty memory with ``config.capacity`` preallocated slots."""
+    """An empty memory: points (d, capacity), values (capacity,), size = head = flags = 0,
+    and an empty grid index when the config uses one."""
     return Memory(
         points=jnp.zeros((config.dim, config.capacity), jnp.float32),
         values=jnp.zeros((config.capacity,), jnp.float32),
@@ -95,8 +98,9 @@ def uses_index(config: HedgerConfig) -> bool:
 
 def scale_inputs(config: HedgerConfig, state: jax.Array, action: jax.Array,
                  params: Optional[HedgerParams] = None) -> jax.Array:
-    """Scaled query z = (concat(state, action) - offset) * scale (the params' scaling, or the
-    config's). state (..., S), action (..., A) -> float32 (..., d)."""
+    """Scaled query z = (concat(state, action) - offset) * scale: state (..., S), action
+    (..., A) -> float32 (..., d). params: ``HedgerParams`` (its input_offset / input_scale),
+    or None for the config's."""
     p = resolve(config, params)
     x = jnp.concatenate([jnp.asarray(state, jnp.float32), jnp.asarray(action, jnp.float32)], -1)
     offset = jnp.asarray(p.input_offset, jnp.float32)
@@ -113,8 +117,8 @@ def valid_mask(memory: Memory) -> jax.Array:
 def squared_distances(points: jax.Array, z: jax.Array) -> jax.Array:
     """Squared distances from z (d,) to every column of points (d, N) -> (N,).
 
-    The sum over the d rows is unrolled: XLA's CPU reduction over a short leading axis is
-    10-17x slower than d fused elementwise passes (measured at d=3, N=20,000).
+    The sum over the d rows is unrolled: on the CPU, d fused elementwise passes beat XLA's
+    reduction over a short leading axis.
     """
     d2 = (points[0] - z[0]) ** 2
     for i in range(1, points.shape[0]):
@@ -124,15 +128,15 @@ def squared_distances(points: jax.Array, z: jax.Array) -> jax.Array:
 
 def select_neighbours(config: HedgerConfig, memory: Memory, z: jax.Array,
                       params: Optional[HedgerParams] = None) -> Neighbours:
-    """K: the stored points within ``k_thresh`` (the params', or the config's) of the scaled
-    query ``z`` (d,).
+    """K: the stored points within ``k_thresh`` of the scaled query z (d,) -> ``Neighbours``
+    (k = ``max_neighbours``) in canonical order (``hedger_jax.canonical``).
 
-    Brute force: squared distances to every slot, empty slots masked to +inf, then the
-    ``max_neighbours`` nearest by ``lax.top_k`` (kept in float32, where top_k is fast), then
-    the threshold. If more than ``max_neighbours`` points lie within ``k_thresh`` only the
-    nearest are used. With ``neighbour_index="grid"`` the exact same set comes from the grid
-    index (``hedger_jax.index``): the cells around the query plus the points written since
-    the last ``refresh_index``.
+    params: ``HedgerParams`` (its k_thresh), or None for the config's. If more than
+    ``max_neighbours`` points lie within ``k_thresh``, the nearest are kept (ties to the
+    lower slot). Brute force: squared distances to every valid slot, then ``lax.top_k``, then
+    the threshold. With the grid index (``hedger_jax.index``) the same set, entry for entry,
+    comes from the cells around the query plus the points written since the last merge.
+    Shapes are checked when traced (``InvalidInputError``).
     """
     expect("z", z, (config.dim,))
     capacity = memory.values.shape[-1]
@@ -141,11 +145,9 @@ def select_neighbours(config: HedgerConfig, memory: Memory, z: jax.Array,
         index = memory.index
         if index is None:  # e.g. a memory built by hand: index everything now (exact)
             index = _grid.build(config, memory.points, memory.size)
-        # The search is piecewise constant in z and the points (its indices are what the fit
-        # uses; the fit recomputes the distances from the gathered points), so it is run on
-        # stop-gradient inputs: then jax.grad / jvp of a prediction work through the grid
-        # index as through brute force (its loops' custom batching rules have no autodiff
-        # rules; with constant inputs none is needed).
+        # Stop-gradient inputs: the search is piecewise constant (the fit recomputes the
+        # distances), and its custom-vmap loops have no autodiff rules; so grad / jvp of a
+        # prediction work through the grid index as through brute force.
         idx, d2_sel, mask = _grid.select(
             config, jax.lax.stop_gradient(memory.points), memory.head,
             jax.tree_util.tree_map(jax.lax.stop_gradient, index), jax.lax.stop_gradient(z),
@@ -161,9 +163,9 @@ def select_neighbours(config: HedgerConfig, memory: Memory, z: jax.Array,
 
 
 def _pad_neighbours(config: HedgerConfig, idx, d2_sel, mask) -> Neighbours:
-    """Pad to ``max_neighbours`` and put K in a canonical order (real neighbours by slot, then
-    padding), so that every search method gives bit-identical fits (float32 sums depend on
-    the order of their terms)."""
+    """(idx (w,), d2 (w,), mask (w,)) with w <= max_neighbours -> ``Neighbours`` padded to
+    ``max_neighbours`` in canonical order (real neighbours by slot, then padding), so every
+    search method gives bit-identical fits (float32 sums depend on the order of terms)."""
     k = idx.shape[-1]
     if k < config.max_neighbours:  # tiny memory: pad to the static neighbour count
         pad = config.max_neighbours - k
@@ -177,11 +179,12 @@ def _pad_neighbours(config: HedgerConfig, idx, d2_sel, mask) -> Neighbours:
 
 def add_scaled(config: HedgerConfig, memory: Memory, z: jax.Array, value: jax.Array,
                write: jax.Array = True) -> Memory:
-    """Store one scaled point ``z`` (d,) with ``value`` () if ``write`` (bool ()).
+    """Store one scaled point z (d,) with value () if ``write`` (bool ()) -> memory.
 
     Under ``"error"`` a full memory drops the point and sets ``FLAG_FULL``; under
-    ``"overwrite_oldest"`` the oldest slot is replaced. A non-finite value (or point) is
-    refused and sets ``FLAG_NONFINITE``.
+    ``"overwrite_oldest"`` the oldest slot is replaced. A non-finite value or point is
+    refused and sets ``FLAG_NONFINITE``. Stored data are never corrupted; the grid index,
+    if any, notes the write.
     """
     capacity = memory.values.shape[-1]
     value = jnp.asarray(value, jnp.float32)
@@ -210,7 +213,11 @@ def add_scaled(config: HedgerConfig, memory: Memory, z: jax.Array, value: jax.Ar
 
 def add_points(config: HedgerConfig, memory: Memory, states: jax.Array, actions: jax.Array,
                values: jax.Array, params: Optional[HedgerParams] = None) -> Memory:
-    """Store n points: states (n, S), actions (n, A), values (n,) -> memory. Jittable."""
+    """Store n points in order: states (n, S), actions (n, A), values (n,) -> memory.
+
+    Each as ``add_scaled`` (full memory and NaN/inf handled by the flags). params:
+    ``HedgerParams`` (its input scaling), or None for the config's. Jittable; shapes are
+    checked when traced (``InvalidInputError``)."""
     n = jnp.shape(states)[0] if jnp.ndim(states) == 2 else -1
     expect("states", states, (n, config.state_dim))
     expect("actions", actions, (n, config.action_dim))
@@ -245,8 +252,8 @@ def refresh_index(config: HedgerConfig, memory: Memory, force: bool = False) -> 
                                               memory.head, memory.size, force=bool(force)))
 
 
-# Jitted (inlined when called under a trace): called eagerly -- a loaded checkpoint, a
-# hand-built memory -- the index is built by one compiled program, not op by op (seconds).
+# Jitted, so an eager call (a loaded checkpoint, a hand-built memory) runs one compiled
+# program rather than op by op; under a trace they are inlined.
 _build_jit = jax.jit(lambda config, points, size: _grid.build(config, points, size),
                      static_argnums=0)
 _refresh_jit = jax.jit(lambda config, index, points, head, size, force:
@@ -255,9 +262,9 @@ _refresh_jit = jax.jit(lambda config, index, points, head, size, force:
 
 
 def memory_check(memory: Memory) -> Memory:
-    """Host-side: raise if the memory's error flags are set; returns the memory unchanged.
-
-    For a batch of memories (leading axes) any flagged member raises.
+    """Host-side: raise ``NonFiniteValueError`` or ``MemoryFullError`` if the memory's error
+    flags are set; else return the memory unchanged. For a batch of memories (leading axes)
+    any flagged member raises.
     """
     flags = np.asarray(jax.device_get(memory.flags))
     if np.any(flags & FLAG_NONFINITE):
@@ -273,7 +280,9 @@ def memory_check(memory: Memory) -> Memory:
 
 
 def stored_points(config: HedgerConfig, memory: Memory, params: Optional[HedgerParams] = None):
-    """Host-side view of one memory's valid points: (inputs (n, d) unscaled, values (n,))."""
+    """Host-side view of one memory's first ``size`` slots: (inputs float64 (n, d) unscaled,
+    values float32 (n,)). params: ``HedgerParams`` (its input scaling), or None for the
+    config's."""
     p = resolve(config, params)
     size = int(memory.size)
     z = np.asarray(memory.points)[:, :size].T.astype(np.float64)

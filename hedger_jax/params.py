@@ -8,8 +8,8 @@ settings is one program::
     keys = jax.random.split(key, 24)
     results = jax.jit(jax.vmap(make_train(env, config, run).train))(keys, params)
 
-Every function that takes ``params=None`` uses the config's values then (as compile-time
-constants: the same program as before params existed).
+Every public function takes ``params=None``, meaning the config's values as compile-time
+constants (``HedgerParams.defaults``): the program a config alone describes.
 """
 from __future__ import annotations
 
@@ -19,12 +19,15 @@ import numpy as np
 
 from hedger_jax.config import HedgerConfig, StaticFieldError
 
-#: Fields of ``HedgerParams`` (in order), and the ``RunConfig`` fields among them.
+#: Fields of ``HedgerParams``, in order.
 FIELDS = ("bandwidth", "min_weight", "k_thresh", "k_min", "alpha", "gamma", "default_value",
           "ridge", "ivh_tol", "input_offset", "input_scale", "use_ivh", "region_update",
           "epsilon", "noise_std")
+#: The fields whose defaults come from ``RunConfig``, not ``HedgerConfig``.
 RUN_FIELDS = ("epsilon", "noise_std")
+#: The boolean switches.
 _BOOLS = ("use_ivh", "region_update")
+#: The (d,) vectors; every other field is a scalar.
 _VECTORS = ("input_offset", "input_scale")
 
 
@@ -33,8 +36,8 @@ class InvalidParamsError(ValueError):
 
 
 class HedgerParams(NamedTuple):
-    """Traced settings (each a scalar, or a length-d vector for the input scaling; a sweep
-    gives every leaf the same leading batch axes).
+    """HEDGER's traced settings: each a scalar, or a (d,) vector for the input scaling; a
+    sweep gives every leaf the same leading batch axes (vmap over them).
 
     bandwidth: Gaussian kernel width h. min_weight: the weight at the selection radius;
     k_thresh: that radius, h sqrt(ln(1 / min_weight)) (derived by ``create``/``replace``).
@@ -63,8 +66,8 @@ class HedgerParams(NamedTuple):
 
     @classmethod
     def defaults(cls, config: HedgerConfig, run: Any = None) -> "HedgerParams":
-        """The config's (and run config's) values as Python numbers: compile-time constants
-        inside a traced function. What every ``params=None`` means."""
+        """The config's (and run config's; else 0.2) values as Python numbers, compile-time
+        constants inside a traced function: what every ``params=None`` means. Unchecked."""
         values = {name: getattr(config, name) for name in FIELDS if name not in RUN_FIELDS}
         values["epsilon"] = float(getattr(run, "epsilon", 0.2))
         values["noise_std"] = float(getattr(run, "noise_std", 0.2))
@@ -75,9 +78,9 @@ class HedgerParams(NamedTuple):
         """Params from the config's (and ``run``'s epsilon / noise_std) values, with some
         replaced by ``values`` (numbers or arrays; arrays give a sweep: every leaf is
         broadcast to their common batch shape). ``k_thresh`` follows bandwidth and
-        min_weight unless given. Checked on the host against the config
-        (``check_params``); the leaves are NumPy arrays (float32, int32 k_min, bool
-        switches)."""
+        min_weight unless given. Checked on the host against the config (``check_params``);
+        a static config field raises ``StaticFieldError``, an unknown one ``TypeError``.
+        The leaves are NumPy arrays (float32, int32 k_min, bool switches)."""
         unknown = sorted(set(values) - set(FIELDS))
         if unknown:
             static = [n for n in unknown if n in HedgerConfig.__dataclass_fields__]
@@ -88,7 +91,7 @@ class HedgerParams(NamedTuple):
             raise TypeError(f"HedgerParams.create: unknown fields {unknown}; known: {FIELDS}")
         base = cls.defaults(config, run)._asdict()
         if "k_thresh" not in values and ("bandwidth" in values or "min_weight" in values):
-            base.pop("k_thresh")                      # derived again below
+            base.pop("k_thresh")                      # derived again from the new values
         base.update(values)
         if "k_thresh" not in base:
             h = np.asarray(base["bandwidth"], np.float64)
@@ -114,7 +117,8 @@ class HedgerParams(NamedTuple):
 
 
 def _as_arrays(config: HedgerConfig, values: dict) -> HedgerParams:
-    """NumPy leaves of the canonical dtypes, broadcast to one batch shape."""
+    """``HedgerParams`` with NumPy leaves of the canonical dtypes, broadcast to one batch
+    shape (a scalar input scaling becomes a (d,) vector)."""
     d = config.dim
     out = {}
     for name in FIELDS:
@@ -141,6 +145,7 @@ def _as_arrays(config: HedgerConfig, values: dict) -> HedgerParams:
 
 
 def _bad(name: str, values: np.ndarray, ok: np.ndarray, rule: str):
+    """Raise ``InvalidParamsError`` naming the field and its first bad value unless all ok."""
     if not np.all(ok):
         first = np.asarray(values)[~np.broadcast_to(ok, np.shape(values))].ravel()[0]
         raise InvalidParamsError(f"{name}: {rule}, got {first!r}")
@@ -182,9 +187,9 @@ def check_params(config: HedgerConfig, params: HedgerParams) -> HedgerParams:
 
 
 def resolve(config: HedgerConfig, params: Optional[HedgerParams]) -> HedgerParams:
-    """``params``, or the config's defaults as constants when None (see the module doc).
-    Given params are checked when traced: one setting (scalars, (d,) input scaling), else
-    ``InvalidInputError`` naming the field (a batch of settings is for ``vmap``)."""
+    """``params``, or the config's defaults as constants when None. Given params are checked
+    when traced: one setting (scalars, (d,) input scaling), else ``InvalidInputError``
+    naming the field (a batch of settings is for ``vmap``)."""
     if params is None:
         return HedgerParams.defaults(config)
     from hedger_jax.validation import InvalidInputError, expect

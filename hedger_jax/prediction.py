@@ -35,7 +35,8 @@ class Prediction(NamedTuple):
 
 def predict_scaled(config: HedgerConfig, memory: Memory, z: jax.Array,
                    params: Optional[HedgerParams] = None) -> Prediction:
-    """Algorithm 1 for a scaled query z (d,). See ``predict_detailed``."""
+    """Algorithm 1 for a scaled query z (d,) -> ``Prediction`` (see ``predict_detailed``).
+    params: ``HedgerParams``, or None for the config's values."""
     return predict_from_neighbours(config, memory, z, select_neighbours(config, memory, z, params),
                                    params)
 
@@ -43,9 +44,12 @@ def predict_scaled(config: HedgerConfig, memory: Memory, z: jax.Array,
 def predict_from_neighbours(config: HedgerConfig, memory: Memory, z: jax.Array,
                             nb: Neighbours, params: Optional[HedgerParams] = None) -> Prediction:
     """Algorithm 1 for a scaled query z (d,) whose neighbour set K is given (``nb``, in the
-    canonical order ``select_neighbours`` returns): the IVH test and the local fit."""
-    # Feature-major (d, k), centred on the query: the gathered columns of ``memory.points``
-    # as they come, and the layout whose sums over K XLA vectorises (``lwr`` module doc).
+    canonical order ``select_neighbours`` returns): the kernel weights, the IVH test and the
+    local fit -> ``Prediction``. Known iff at least ``k_min`` neighbours, a finite fit and
+    (with ``use_ivh``) the query inside their hull. params: ``HedgerParams``, or None for
+    the config's values."""
+    # Feature-major (d, k), centred on the query: the gathered columns as they come, and the
+    # layout whose sums over K XLA vectorises.
     zt = memory.points[:, nb.indices] - z[:, None]
     zt = jnp.where(nb.mask[None, :], zt, 0.0)
     y = memory.values[nb.indices]
@@ -66,6 +70,7 @@ def predict_detailed(config: HedgerConfig, memory: Memory, state: jax.Array,
                      action: jax.Array, params: Optional[HedgerParams] = None) -> Prediction:
     """Algorithm 1 for one query: state (S,), action (A,) -> ``Prediction``.
 
+    params: ``HedgerParams`` (traced hyperparameters), or None for the config's values.
     Vmap it over queries, candidate actions, memories (seeds) or params (settings). Shapes
     are checked when traced (``InvalidInputError`` naming the argument). A NaN or inf in
     the query finds no neighbour: the prediction is "don't know" (``default_value``).
@@ -77,6 +82,8 @@ def predict_detailed(config: HedgerConfig, memory: Memory, state: jax.Array,
 
 def predict(config: HedgerConfig, memory: Memory, state: jax.Array, action: jax.Array,
             params: Optional[HedgerParams] = None):
-    """Q(s, a): state (S,), action (A,) -> (value f32 (), known bool (), n_neighbours i32 ())."""
+    """Q(s, a): state (S,), action (A,) -> (value f32 (), known bool (), n_neighbours i32 ()).
+
+    ``predict_detailed`` without the neighbour set; params likewise (None: the config's)."""
     p = predict_detailed(config, memory, state, action, params)
     return p.value, p.known, p.n_neighbours

@@ -9,18 +9,15 @@ candidate a -- the same queries, over M plus the points appended since.
 Under ``full_policy="error"`` points are only appended (slots [size_M, size) are the new
 ones, every older slot unchanged), so the exact K over the grown memory is the k nearest,
 by (squared distance, slot), of K over M and the appended points within ``k_thresh``: a
-point of M outside K over M is beaten by all k of it. ``merge_appended`` computes that
-from the cached K and the appended slots alone (a window of at most ``width`` of them): no
-search. Its result is the search's, entry for entry in canonical order (tested), so
-training is bit-identical with and without the cache.
+point of M outside K over M is beaten by all k of it. ``merge_appended`` computes that from
+the cached K and the appended slots alone (a window of at most ``width`` of them). Its result
+is the search's, entry for entry in canonical order (tested), so the replay fits the same
+neighbour sets with and without the cache.
 
-The replay falls back to the search for a step when a set is missing (a random exploratory
-step ran no greedy search; the episode's last state was never acted in) or the memory is
-not M grown by at most ``width`` appended points; and under ``"overwrite_oldest"`` always.
-When only K of (s_t, a_t) is missing (a random action at t, a greedy one at t + 1: about
-16 % of steps with epsilon 0.2) that one query is searched and the candidates' sets merged
-(training paired 1.05x, continuous mountain car at 3e5 slots, bit-identical; the program
-holds one more search, ~6 s more compile there). Measured effect: README "Performance".
+A replay step searches all its queries instead when one set is missing (a random
+exploratory step ran no greedy search; the episode's last state was never acted in), when
+the memory is not M grown by at most ``width`` points, or when a query meets more than
+``APPENDED_WIDTH`` appended points; and always under ``"overwrite_oldest"``.
 """
 from __future__ import annotations
 
@@ -53,12 +50,14 @@ class StepNeighbours(NamedTuple):
 
 
 def usable(config: HedgerConfig) -> bool:
-    """Whether the replay can use cached sets for this config (only appends: "error")."""
+    """Whether the replay can use cached sets for this config: only under
+    ``full_policy="error"``, where the memory only grows by appends."""
     return config.full_policy == "error"
 
 
 def missing(config: HedgerConfig, n_candidates: int, size: jax.Array) -> StepNeighbours:
-    """A step without sets (e.g. a random exploratory action): nothing cached."""
+    """The record of a step without sets (e.g. a random exploratory action): every set -1,
+    nothing cached; ``size`` int32 () the memory's size."""
     k = config.max_neighbours
     none = jnp.full((k,), -1, jnp.int32)
     return StepNeighbours(jnp.asarray(size, jnp.int32), jnp.broadcast_to(none, (n_candidates, k)),
@@ -104,26 +103,25 @@ def appended_window(memory: Memory, size0: jax.Array, width: int):
     return pts, slots, appended, fits
 
 
-#: ``RunConfig(reuse_neighbours=None)`` reuses sets from this capacity on. Measured (mountain
-#: car, training paired in one process, 2-core CPU): 1.077x / 1.063x continuous / discrete at
-#: 3e5 slots, 0.99x continuous at 2e4 (searches of a small memory cost little), while the
-#: program takes longer to compile (~1-3 s; ~6 s more since the first query alone can be
-#: searched: continuous training at 3e5, trace + compile 16.5 -> 23 s on a 2-core Xeon).
+#: ``RunConfig(reuse_neighbours=None)`` reuses sets from this capacity on; below it searches
+#: are cheap and the larger program's compile time does not pay.
 REUSE_MIN_CAPACITY = 100_000
 
-#: Appended points within ``k_thresh`` of a query that the merge takes (more: the step
-#: searches instead). Measured (mountain car, 3e5 slots, 8 episodes of 200 steps): the most
-#: any query of a step met was 1 / 3 / 6 / 8 at the 50th / 90th / 99th / 100th percentile.
+#: Most appended points within ``k_thresh`` of a query that the merge takes (more: the step
+#: searches instead).
 APPENDED_WIDTH = 16
 
 
 def merge_appended(config: HedgerConfig, memory: Memory, z: jax.Array, cached: jax.Array,
                    window, d2w: jax.Array, near: jax.Array, k_thresh) -> Neighbours:
-    """K of the scaled query z (d,) over the memory, from K over its first size0 slots
-    (``cached`` int32 (k,): slots in canonical order, then -1) and the appended points:
-    ``appended_window``'s ``window`` (which must ``fit``), their squared distances to z
-    ``d2w`` (W,) and which of them are appended and within ``k_thresh`` ``near`` (W,), at most
-    ``APPENDED_WIDTH`` of them. The same ``Neighbours`` as ``select_neighbours``."""
+    """K of the scaled query z (d,) over the memory, from K over its first size0 slots and
+    the points appended since, without a search.
+
+    cached: int32 (k,) slots of K over size0 slots in canonical order, then -1. window:
+    ``appended_window``'s result (which must ``fit``); d2w float32 (W,) its points' squared
+    distances to z; near bool (W,) which of them are appended and within ``k_thresh`` (at
+    most ``APPENDED_WIDTH`` are taken). Returns the same ``Neighbours`` as
+    ``select_neighbours``, entry for entry."""
     _, slots, _, _ = window
     k = cached.shape[-1]
     w = d2w.shape[-1]
@@ -161,11 +159,13 @@ def merge_appended(config: HedgerConfig, memory: Memory, z: jax.Array, cached: j
 
 def cached_neighbours(config: HedgerConfig, memory: Memory, zs: jax.Array,
                       cached: Optional[tuple], search, k_thresh) -> Neighbours:
-    """K of each query zs (q, d) within ``k_thresh``: merged from ``cached`` = (sets (q, k),
-    size0 (), ok (q,) or () for all) of ``replay_sets``, width) when every set is usable
-    (width, a static int: the most appended points looked at, e.g. the episode's length),
-    else ``search(zs)`` (-> ``Neighbours``, leading q) for all of them. Under ``vmap`` with
-    members that disagree, every member searches (same result)."""
+    """K of each query zs (q, d) within ``k_thresh`` -> ``Neighbours`` with leading axis q.
+
+    cached: None, or (sets int32 (q, k), size0 int32 (), ok bool (q,) or (), width) --
+    ``replay_sets``'s result and a static int, the most appended points looked at (e.g. the
+    episode's length). When every set is usable they are merged (``merge_appended``); else
+    ``search(zs)`` (-> ``Neighbours``, leading q) runs for all of them. Under ``vmap`` with
+    members that disagree, every member searches. The result is the search's either way."""
     from hedger_jax.loops import batch_cond
 
     if cached is None or not usable(config):

@@ -10,20 +10,15 @@ Within a device the seeds run either vmapped (``per_device="vmap"``: one batched
 a GPU wants) or one after another (``"map"``: ``lax.map``, the single-seed program in a loop).
 ``"auto"`` (default) picks ``"map"`` on CPU devices and ``"vmap"`` on accelerators. Why: on a
 CPU a vmapped episode loop runs until its longest member ends and the batched index and fit
-kernels cost about as much per seed as one seed's, so vmapped seeds add no throughput (8
-seeds, capacity 20,000: 37,000 points/s in total against 62,000 for one seed), while ``map``
-keeps every seed at the single-seed rate and the devices run side by side. Measured with
-``benchmarks/seeds_sharded.py`` (2-core AMD EPYC VM, 2 forced host devices, 8 seeds,
-discrete mountain car at 20,000 slots, wall-clock points/s): ``map`` 86,000-113,000,
-``vmap`` in the same shard_map 46,000, and the earlier form of this function -- ``jax.jit`` of
-the vmapped train with the seed axis sharded by XLA's SPMD partitioner -- 5,000-6,000.
+kernels cost about as much per seed as one seed's, so vmapped seeds add no throughput, while
+``map`` keeps every seed at the single-seed rate and the devices run side by side.
 
 Every output leaf keeps the leading seed axis and stays sharded over the devices (call
 ``jax.device_get`` to gather). The number of seeds need not divide the device count: the keys
 are padded by repeating the last one and the padding is cut from the outputs. A seed's result
 does not depend on the device it ran on or on how many others shared it (``"map"``: the
-single-seed program; ``"vmap"``: as ``jax.vmap(train_fn)``). On CPU, test it with
-``XLA_FLAGS=--xla_force_host_platform_device_count=N`` (set before JAX starts).
+single-seed program; ``"vmap"``: as ``jax.vmap(train_fn)``). On a CPU, split it into N
+devices with ``hedger_jax.cpu.configure(host_devices=N)`` before JAX starts.
 """
 from __future__ import annotations
 
@@ -37,7 +32,9 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from hedger_jax.cpu import jit as _jit
 
+#: Name of the mesh axis the seeds are split over.
 AXIS = "seeds"
+#: ``per_device`` choices (module doc).
 PER_DEVICE_MODES = ("auto", "map", "vmap")
 
 
@@ -60,6 +57,7 @@ def resolve_per_device(per_device: str, mesh: Mesh) -> str:
 
 
 def _shard_map(fn: Callable, mesh: Mesh) -> Callable:
+    """``fn`` under ``shard_map`` with every argument and output split along ``AXIS``."""
     spec = PartitionSpec(AXIS)
     if hasattr(jax, "shard_map"):
         # check_vma off: the library's loops start from constants (e.g. kselect's bit search)
@@ -87,6 +85,7 @@ def per_device(fn: Callable, mesh: Mesh, mode: str) -> Callable:
 
 @functools.lru_cache(maxsize=32)
 def _compiled(train_fn: Callable, mesh: Mesh, mode: str):
+    """The jitted per-device program and its input sharding (cached per train_fn, mesh, mode)."""
     sharding = NamedSharding(mesh, PartitionSpec(AXIS))
     fn = _jit(per_device(train_fn, mesh, mode), in_shardings=sharding, out_shardings=sharding)
     return fn, sharding
@@ -112,8 +111,9 @@ def shard_seeds(train_fn: Callable, keys: jax.Array, devices: Optional[Sequence[
     """Run ``train_fn`` for every key, the seeds split across ``devices``.
 
     train_fn: key -> pytree (e.g. ``make_train(...).train``); keys: (n_seeds, ...) raw or typed
-    PRNG keys. per_device: "auto" | "map" | "vmap" (module doc). Returns the outputs with leading axis n_seeds, sharded over the
-    devices. Compiles once per (train_fn, devices, mode, n_seeds).
+    PRNG keys. per_device: "auto" | "map" | "vmap" (module doc). Returns the outputs with
+    leading axis n_seeds, sharded over the devices. Compiles once per (train_fn, devices,
+    mode, n_seeds).
     """
     mesh = seed_mesh(devices)
     n_dev = mesh.devices.size

@@ -33,8 +33,12 @@ class Transition(NamedTuple):
 
 
 class TrainInfo(NamedTuple):
-    """q: prediction Q(s,a) before the update; q_next: max_a' Q(s',a') (0 at a terminal);
-    q_new: the stored target; known: whether Q(s,a) was known. All float32/bool ()."""
+    """What one training step saw (an episode's has a leading time axis T on every field).
+
+    q: float32 () Q(s, a) before the update; q_next: float32 () max_a' Q(s', a') (0 at a
+    terminal); q_new: float32 () the target stored with (s, a); known: bool ()
+    whether Q(s, a) was known.
+    """
 
     q: jax.Array
     q_next: jax.Array
@@ -46,14 +50,16 @@ def region_update(memory: Memory, indices: jax.Array, weights: jax.Array, mask: 
                   target: jax.Array, apply: jax.Array = True) -> Memory:
     """Q_i <- Q_i + kappa_i (target - Q_i) for every masked neighbour i (Algorithm 2, l. 7-8).
 
-    indices (k,) distinct slots, weights (k,) in [0, 1], mask (k,), target (). A non-finite
-    target is refused (flag ``FLAG_NONFINITE``), so the memory never receives NaN.
+    indices int32 (k,) slots (distinct where masked), weights float32 (k,) in [0, 1], mask
+    bool (k,), target (), apply bool () -> memory. Each new value lies between the old one
+    and the target. A non-finite target is refused (flag ``FLAG_NONFINITE``), so the memory
+    never receives NaN.
     """
     finite = jnp.isfinite(target)
     use = mask & jnp.asarray(apply, bool) & finite
     old = memory.values[indices]
     # Convex form, clipped: in float32 ``old + k (target - old)`` can leave [old, target]
-    # (e.g. old = 1, k = 1, target = 1e-8 gives 0), losing tiny gamma^n values.
+    # (old = 1, k = 1, target = 1e-8 gives 0), losing tiny gamma^n values.
     new = (1.0 - weights) * old + weights * target
     new = jnp.clip(new, jnp.minimum(old, target), jnp.maximum(old, target))
     # Unused entries (padding may repeat a slot) are dropped, so each slot is written once.
@@ -65,26 +71,28 @@ def region_update(memory: Memory, indices: jax.Array, weights: jax.Array, mask: 
 
 def train_step(config: HedgerConfig, memory: Memory, transition: Transition, cached=None,
                params: Optional[HedgerParams] = None):
-    """Algorithm 2 for one experience -> (memory, TrainInfo). Jittable, vmappable.
-
-    ``cached``: optional neighbour sets found while acting (``replay_cache.replay_sets`` and
-    the window width), used instead of searching when valid: the same result, faster.
+    """Algorithm 2 for one experience: transition (fields as ``Transition``, no leading
+    axis) -> (memory, ``TrainInfo``). Jittable, vmappable.
 
     q = Q(s, a) with its neighbour set K and weights kappa; q_next = max_a' Q(s', a')
     (0 if terminated); q_new = q + alpha (r + gamma q_next - q); (s, a) -> q_new is stored as
     a new point; with ``region_update`` every neighbour in K moves toward q_new by kappa_i.
     K is the set found before storing, and is updated whether or not q was known (the paper's
-    Algorithm 2 updates "each point in K"). An invalid transition changes nothing.
+    Algorithm 2 updates "each point in K"). An invalid transition changes nothing; a valid
+    one whose reward, observation, action or (non-terminal) next observation is NaN/inf
+    stores nothing and sets ``FLAG_NONFINITE``.
+
+    cached: optional neighbour sets found while acting (``replay_cache.replay_sets``'s result
+    and the window width), used instead of searching where usable: the same sets.
+    params: ``HedgerParams`` (alpha, gamma, ... traced), or None for the config's values.
     """
     t = transition
     expect_transition(config, t, ())
     p = resolve(config, params)
     valid = jnp.asarray(t.valid, bool)
     z = scale_inputs(config, t.obs, t.action, params)
-    # Q(s, a) and the first candidates Q(s', a') of max_a' (the discrete set, or the initial
-    # grid of the continuous search) as one vmapped batch: one copy of the neighbour search
-    # and fit in the program instead of two (on the CPU, XLA's cost here is mostly per
-    # operation, not per query). Same values as predict + greedy_value.
+    # Q(s, a) and the first candidates Q(s', a') of max_a' as one vmapped batch: one copy of
+    # the search and fit in the program, not two. Same values as predict + greedy_value.
     acts = greedy_candidates(config)                                          # (n, A)
     zs = jnp.concatenate([z[None], scale_inputs(
         config, jnp.broadcast_to(t.next_obs, (acts.shape[0],) + t.next_obs.shape), acts,
@@ -118,7 +126,8 @@ def train_episode(config: HedgerConfig, memory: Memory, episode: Transition,
     """Reverse replay (Lin 1992): ``train_step`` over an episode newest-first.
 
     episode: ``Transition`` with leading axis T (padded steps have valid=False and change
-    nothing). Returns (memory, TrainInfo with leading axis T, in the episode's time order).
+    nothing). params: ``HedgerParams``, or None for the config's values. Returns (memory,
+    ``TrainInfo`` with leading axis T, in the episode's time order).
     """
 
     expect_transition(config, episode, jnp.shape(episode.reward)[:1], "episode")

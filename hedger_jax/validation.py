@@ -1,15 +1,18 @@
-"""Host-boundary input checks: every public host entry point validates what it is given here.
+"""Input checks: on the host before values reach jitted code, and at trace time.
 
-Inside jitted code nothing can raise; there the documented mechanism is the memory's error
-flags (``FLAG_NONFINITE``: a NaN/inf value tried to enter the memory and was refused;
+Inside jitted code nothing can raise; there the mechanism is the memory's error flags
+(``FLAG_NONFINITE``: a NaN/inf value tried to enter the memory and was refused;
 ``FLAG_FULL``: a point was dropped because the memory was full), which the host raises with
-``memory.memory_check``. At the host boundary (the ``Hedger`` learner's methods, ``load_*``)
-inputs are checked *before* they reach jitted code, with a clear :class:`InvalidInputError`
-(a ``ValueError``) naming the argument, the problem and the offending value.
+``memory.memory_check``.
 
-Every function here is host-side NumPy: call it on concrete values, never inside ``jit``.
-Each returns the validated value as a NumPy array of the canonical dtype (float32 for
-observations, actions and rewards; bool for flags), so callers can pass it straight on.
+Host checks (``check_*``, ``action_indices``; used by the ``Hedger`` learner's methods and
+``load_*``): NumPy on concrete values, never inside ``jit``. Each raises
+:class:`InvalidInputError` (a ``ValueError``) naming the argument, the problem and the
+offending value, and returns the value as a NumPy array of the canonical dtype (float32 for
+observations, actions and rewards; bool for flags).
+
+Trace-time checks (``expect*``; used by the functional API): shapes and dtypes only, on
+arrays or tracers, inside ``jit`` and ``vmap`` too, before any value exists.
 """
 from __future__ import annotations
 
@@ -34,10 +37,12 @@ class InvalidInputError(ValueError):
 
 
 def _first_bad(bad: np.ndarray) -> Tuple[int, ...]:
+    """Index of the first True entry of ``bad`` (() for a scalar)."""
     return tuple(int(i) for i in np.argwhere(bad)[0]) if bad.ndim else ()
 
 
 def _fmt(x: Any) -> str:
+    """A short text of a value for messages."""
     a = np.asarray(x)
     return repr(a.item()) if a.ndim == 0 else np.array2string(a, precision=8, threshold=12)
 
@@ -48,8 +53,8 @@ def check_array(name: str, x: Any, *, dtype: Any = np.float32, ndim: Optional[Tu
 
     name: the argument's name, used in messages. dtype: float32 (numeric input required;
     booleans and strings refused) or bool (0/1 or bool input). ndim: allowed numbers of
-    dimensions. last_dim: required size of the last axis. finite: refuse NaN/inf.
-    Raises :class:`InvalidInputError`.
+    dimensions. last_dim: required size of the last axis. finite: refuse NaN/inf, and
+    values that overflow float32. Raises :class:`InvalidInputError`.
     """
     try:
         a = np.asarray(x)
@@ -99,8 +104,8 @@ def check_actions(config: HedgerConfig, action: Any, name: str = "action") -> np
     """Action *values* (..., A) -> float32 (..., A), checked against the config's action space.
 
     Continuous: every entry within [action_low, action_high] (relative slack ``ACTION_RTOL``).
-    Discrete: every action one of ``config.discrete_actions``. A scalar or (...,) array is
-    accepted when A == 1 only if it has a trailing axis: pass shape (..., 1).
+    Discrete: every action one of ``config.discrete_actions``. The last axis must be A, also
+    when A == 1: pass shape (..., 1).
     """
     a = check_array(name, action, last_dim=config.action_dim)
     if config.is_discrete:
@@ -149,9 +154,10 @@ def check_transitions(config: HedgerConfig, transitions: Any, name: str = "trans
     """Check a ``Transition``-like batch with leading axes L (e.g. (E, T) or (T,)).
 
     Fields: obs (L, S), action (L, A), reward (L), next_obs (L, S), terminated (L), valid (L).
-    Values on padding steps (valid False) are not checked beyond finiteness. With
-    ``require_prefix`` the valid steps of each episode (last leading axis is time) must be a
-    prefix. Returns a ``hedger_jax.train.Transition`` of NumPy arrays of canonical dtypes.
+    Values on padding steps (valid False) are checked for finiteness only (actions are
+    checked against the action space on valid steps). With ``require_prefix`` the valid
+    steps of each episode (last leading axis is time) must be a prefix. Returns a
+    ``hedger_jax.train.Transition`` of NumPy arrays of canonical dtypes.
     """
     from hedger_jax.train import Transition
 
@@ -188,7 +194,8 @@ def check_transitions(config: HedgerConfig, transitions: Any, name: str = "trans
 
 
 def check_key(key: Any, name: str = "key") -> np.ndarray:
-    """A raw JAX PRNG key: uint32 (2,) (``jax.random.PRNGKey``), or a typed key -> its data."""
+    """A raw JAX PRNG key uint32 (2,) (``jax.random.PRNGKey``), or a typed key -> its data as
+    NumPy uint32 (2,). Raises :class:`InvalidInputError` otherwise."""
     import jax
 
     if hasattr(key, "dtype") and jax.dtypes.issubdtype(key.dtype, jax.dtypes.prng_key):
@@ -246,8 +253,7 @@ def config_differences(a: Any, b: Any) -> list:
 
 
 # ------------------------------------------------------------------------------------------
-# Trace-time checks: shapes and dtypes are static, so the functional API checks them while it
-# is traced (inside jit and vmap too), before any value exists.
+# Trace-time checks: shapes and dtypes are static, so they can be checked inside jit and vmap.
 # ------------------------------------------------------------------------------------------
 def expect(name: str, x: Any, shape: Tuple[int, ...], kind: str = "real") -> None:
     """Raise :class:`InvalidInputError` unless ``x`` (an array or tracer) has ``shape`` and a
@@ -267,7 +273,8 @@ def expect(name: str, x: Any, shape: Tuple[int, ...], kind: str = "real") -> Non
 
 
 def expect_key(name: str, key: Any) -> None:
-    """A PRNG key: a typed key of shape (), or raw uint32 (2,)."""
+    """Raise :class:`InvalidInputError` unless ``key`` is one PRNG key: a typed key of shape
+    (), or raw uint32 (2,)."""
     import jax
     import jax.numpy as jnp
 
@@ -283,8 +290,9 @@ def expect_key(name: str, key: Any) -> None:
 
 def expect_transition(config: HedgerConfig, t: Any, lead: Tuple[int, ...] = (),
                       name: str = "transition") -> None:
-    """A ``Transition`` with leading axes ``lead``: obs/next_obs (S,), action (A,), reward,
-    terminated and valid () each after them."""
+    """Raise :class:`InvalidInputError` unless ``t`` is a ``Transition`` with leading axes
+    ``lead`` (default: those of its reward): obs/next_obs (S,), action (A,), reward,
+    terminated and valid () after them."""
     import jax.numpy as jnp
 
     lead = tuple(lead) if lead else tuple(jnp.shape(t.reward))
