@@ -23,8 +23,9 @@ AUTO_GRID_LOW_DIM = 4
 AUTO_GRID_CAPACITY_LOW_DIM = 512
 #: ... and from this one for more dimensions (a query scans 3^(d-1) rows of cells) ...
 AUTO_GRID_CAPACITY = 16_384
-#: ... when a query's rows cover at most this fraction of a uniformly filled memory
-#: (``index.scanned_fraction``; beyond it, e.g. with a wide kernel, brute force is faster).
+#: ... when, for more dimensions, a query's rows cover at most this fraction of a uniformly
+#: filled memory (``index.scanned_fraction``). Low-dimensional inputs use the grid at any
+#: kernel width: its finer levels keep wide kernels cheap (docs/performance.md).
 AUTO_GRID_MAX_FRACTION = 0.02
 #: Largest capacity of the grid index (int32 positions with a flag at bit 30); above it
 #: "auto" uses brute force and "grid" is refused.
@@ -113,7 +114,8 @@ class HedgerConfig:
     index of ``hedger_jax.index``: the same neighbour sets) or "auto" (``index_kind``: the
     grid from ``AUTO_GRID_CAPACITY_LOW_DIM`` slots up for inputs of at most
     ``AUTO_GRID_LOW_DIM`` dimensions, from ``AUTO_GRID_CAPACITY`` for more, unless the kernel
-    is wide against the input ranges, ``AUTO_GRID_MAX_FRACTION``; the grid holds at most
+    is wide against the input ranges with more dimensions, ``AUTO_GRID_MAX_FRACTION``; the
+    grid holds at most
     ``GRID_MAX_CAPACITY`` slots). Grid settings: ``index_chunk`` candidates per step of the
     scan (None: ``index.chunk_width``); ``index_bounds`` the scaled range ((lo, hi) per
     dimension) the grid covers (default: [0, 1] per state dimension and the scaled action
@@ -309,13 +311,16 @@ class HedgerConfig:
 
     @property
     def index_kind(self) -> str:
-        """The neighbour search in use: "brute" or "grid" ("auto" resolved by capacity,
-        dimension and scanned fraction: see the AUTO_GRID_* constants)."""
+        """The neighbour search in use: "brute" or "grid" ("auto" resolved by capacity and
+        dimension, and above ``AUTO_GRID_LOW_DIM`` dimensions by the scanned fraction: see
+        the AUTO_GRID_* constants)."""
         if self.neighbour_index == "auto":
             low_dim = self.dim <= AUTO_GRID_LOW_DIM
             threshold = AUTO_GRID_CAPACITY_LOW_DIM if low_dim else AUTO_GRID_CAPACITY
             if self.capacity < threshold or self.capacity > GRID_MAX_CAPACITY:
                 return "brute"
+            if low_dim:
+                return "grid"
             from hedger_jax.index import scanned_fraction
 
             return "grid" if scanned_fraction(self) <= AUTO_GRID_MAX_FRACTION else "brute"

@@ -110,13 +110,15 @@ def test_config_validation_names_the_field():
     assert HedgerConfig(3, capacity=512).index_kind == "grid"
     assert HedgerConfig(4, capacity=16_383).index_kind == "brute"
     assert HedgerConfig(4, capacity=16_384).index_kind == "grid"
-    # ... unless a query's rows would cover more than AUTO_GRID_MAX_FRACTION of the memory
-    # (a wide kernel against the input ranges): then brute force at any capacity.
+    # Low-dimensional inputs use the grid at any kernel width; with more dimensions, only
+    # while a query's rows cover at most AUTO_GRID_MAX_FRACTION of the memory.
     from hedger_jax.config import AUTO_GRID_MAX_FRACTION
     wide = HedgerConfig(3, capacity=20_000, bandwidth=0.1)
-    assert gi.scanned_fraction(wide) > AUTO_GRID_MAX_FRACTION and wide.index_kind == "brute"
-    narrow = HedgerConfig(3, capacity=20_000, bandwidth=0.015)
-    assert gi.scanned_fraction(narrow) < AUTO_GRID_MAX_FRACTION and narrow.index_kind == "grid"
+    assert gi.scanned_fraction(wide) > AUTO_GRID_MAX_FRACTION and wide.index_kind == "grid"
+    wide8 = HedgerConfig(7, capacity=20_000, bandwidth=0.1)
+    assert gi.scanned_fraction(wide8) > AUTO_GRID_MAX_FRACTION and wide8.index_kind == "brute"
+    narrow8 = HedgerConfig(7, capacity=20_000, bandwidth=0.01)
+    assert gi.scanned_fraction(narrow8) < AUTO_GRID_MAX_FRACTION and narrow8.index_kind == "grid"
     assert HedgerConfig(2, capacity=10 ** 6).index_kind == "grid"
     assert HedgerConfig(2, capacity=10 ** 6, neighbour_index="brute").index_kind == "brute"
 
