@@ -228,3 +228,31 @@ def test_project_envs_keep_the_fast_path():
                                        n_episodes=1)
     with pytest.raises(ValueError, match="unknown environment 'NoSuchEnv-v9'"):
         Hedger("NoSuchEnv-v9")
+
+
+def test_import_pulls_no_env_module():
+    import os
+    import subprocess
+    import sys
+
+    code = ("import sys, hedger_jax; bad = [m for m in sys.modules if m.split('.')[0] in "
+            "('gymnasium', 'envs', 'gymnax')]; assert not bad, bad; print('ok')")
+    repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    res = subprocess.run([sys.executable, "-c", code], cwd=repo, capture_output=True,
+                         text=True, timeout=120)
+    assert res.returncode == 0 and "ok" in res.stdout, res.stderr[-2000:]
+
+
+def test_experiment_pieces():
+    from experiments.gymnasium_envs import Setting, random_policy, run_seed, summarise, table
+
+    setting = Setting(dict(capacity=CAP, bandwidth=0.05, gamma=0.99), steps=200)
+    recs = [run_seed("MountainCar-v0", setting, seed, 200, eval_episodes=1) for seed in (0, 1)]
+    assert [r["episodes"] for r in recs] == [1, 1] and recs[0]["points"] == 200
+    assert recs[0]["train_returns"] == [-200.0]
+    base = random_policy("MountainCar-v0", 2, seed=0)
+    assert base == {"mean_return": -200.0, "mean_steps": 200.0}
+    row = summarise("MountainCar-v0", recs, base, setting, 200)
+    assert row["mean_return"] == [-200.0, 0.0] and row["success_rate"] == 0.0
+    assert "| MountainCar-v0 | 200 | bandwidth=0.05, capacity=1024, gamma=0.99 | -200.0 ± 0.0" \
+        in table([row])
