@@ -41,7 +41,6 @@ import functools
 from typing import Any, Callable, Dict, NamedTuple, Optional, Tuple
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from hedger_jax import rng

@@ -51,7 +51,7 @@ from hedger_jax.config import HedgerConfig
 from hedger_jax.greedy import greedy_action
 from hedger_jax.cpu import jit as _jit
 from hedger_jax import environments as _envs
-from hedger_jax.environments import GYM_IDS, GymnasiumEnv, make_env
+from hedger_jax.environments import GYM_IDS, GymnasiumEnv, make_env  # noqa: F401 (re-exported)
 from hedger_jax.memory import Memory, init_memory, memory_check, refresh_index
 from hedger_jax.prediction import predict as _predict_q
 from hedger_jax.validation import (InvalidInputError, check_actions, check_key,
