@@ -8,7 +8,11 @@ imports ``hedger_jax``.
 from envs.spaces import ActionSpace
 from envs.base import FunctionalEnv
 
-__all__ = ["ActionSpace", "FunctionalEnv", "make"]
+__all__ = ["ActionSpace", "FunctionalEnv", "make", "NAMES"]
+
+#: Every name ``make`` accepts.
+NAMES = ("mountain_car_discrete", "mountain_car", "MountainCar", "mountain_car_continuous",
+         "corridor")
 
 
 def make(name: str, **kwargs):

@@ -22,6 +22,12 @@ The memory buffer is *donated* to the jitted training functions: after ``learn``
 ``learn_from_demonstrations``) an old reference to ``model.memory`` is invalid; always read
 ``model.memory`` afresh.
 
+Any Gymnasium env works too: ``Hedger("Pendulum-v1")``, ``Hedger(gymnasium.make("CartPole-v1"))``
+(a ``Box`` observation space, a ``Discrete`` or one-dimensional ``Box`` action space). The
+project's JAX envs run whole episodes in jitted code; any other Gymnasium env runs in a host
+loop, one jitted action per step and one jitted reverse replay per episode
+(``hedger_jax.environments``, which also states how its actions and observations are scaled).
+
 Actions. The functional envs take action *values* (e.g. -1.0, 0.0, +1.0 for mountain car);
 the Gymnasium adapter (``envs.gym_adapter``) takes a ``Discrete`` *index* for a discrete env
 and the value vector for a continuous one. ``predict`` returns what the Gymnasium env
@@ -44,19 +50,14 @@ from hedger_jax.checkpoint import load_checkpoint, save_checkpoint
 from hedger_jax.config import HedgerConfig
 from hedger_jax.greedy import greedy_action
 from hedger_jax.cpu import jit as _jit
+from hedger_jax import environments as _envs
+from hedger_jax.environments import GYM_IDS, GymnasiumEnv, make_env  # noqa: F401 (re-exported)
 from hedger_jax.memory import Memory, init_memory, memory_check, refresh_index
 from hedger_jax.prediction import predict as _predict_q
 from hedger_jax.validation import (InvalidInputError, check_actions, check_key,
                                    check_observations, check_transitions)
 
-__all__ = ["Hedger", "make_env", "GYM_IDS", "ENV_PRESETS"]
-
-#: Gymnasium ids (``envs.gym_adapter``) -> ``envs.make`` names.
-GYM_IDS = {
-    "HedgerMountainCar-v0": "mountain_car_discrete",
-    "HedgerMountainCarContinuous-v0": "mountain_car_continuous",
-    "HedgerCorridor-v0": "corridor",
-}
+__all__ = ["Hedger", "make_env", "GYM_IDS", "ENV_PRESETS", "HOST_EVAL_EPISODES"]
 
 #: Default settings per env (measured in ``experiments``): ``hedger`` are overrides for
 #: ``HedgerConfig.for_env`` (``action_scale`` included), ``run`` for ``RunConfig``.
@@ -68,23 +69,9 @@ ENV_PRESETS: Dict[str, Dict[str, Dict[str, Any]]] = {
                  "run": dict(exploration="gaussian", noise_std=0.3)},
 }
 
-
-def make_env(env_id: str, **env_kwargs: Any):
-    """A functional env from a Gymnasium id (``GYM_IDS``) or an ``envs.make`` name.
-
-    Returns (env, name) where name is the ``envs.make`` name. Raises ``ValueError`` for an
-    unknown id.
-    """
-    import envs
-
-    if not isinstance(env_id, str):
-        raise TypeError(f"env id must be a string, got {type(env_id).__name__}")
-    name = GYM_IDS.get(env_id, env_id)
-    try:
-        return envs.make(name, **env_kwargs), name
-    except ValueError as exc:
-        raise ValueError(f"unknown environment {env_id!r}: not a registered Gymnasium id "
-                         f"({sorted(GYM_IDS)}) nor an envs.make name ({exc})") from None
+#: Default ``RunConfig.eval_episodes`` for a Gymnasium env run by the host loop (its
+#: ``eval_max_steps`` defaults to the env's time limit).
+HOST_EVAL_EPISODES = 20
 
 
 # ------------------------------------------------------------------------------------------
@@ -214,23 +201,41 @@ class Hedger:
     """HEDGER learner with the Stable-Baselines3 surface.
 
     Args:
-      env: a Gymnasium id (``"HedgerMountainCar-v0"``, ``"HedgerMountainCarContinuous-v0"``,
-        ``"HedgerCorridor-v0"``), an ``envs.make`` name, or a functional env object
-        (``envs.base``; it must be hashable, as it is a static jit argument).
+      env: one of
+        * the project's JAX envs, run whole-episode inside jitted code: a Gymnasium id
+          (``"HedgerMountainCar-v0"``, ``"HedgerMountainCarContinuous-v0"``,
+          ``"HedgerCorridor-v0"``), an ``envs.make`` name, a ``gymnasium.Env`` whose
+          ``unwrapped`` is the project's adapter (its functional env and params are used), or a
+          functional env object (``envs.base``; it must be hashable, as it is a static jit
+          argument);
+        * any other Gymnasium env, by id (``"MountainCar-v0"``, ``"Pendulum-v1"``, ...; made
+          with ``gymnasium.make(env, **env_kwargs)``) or as an instance, with a ``Box``
+          observation space of shape (S,) and a ``Discrete`` or ``Box`` (1,) action space. It
+          runs in a host loop (``hedger_jax.environments``): a ``Discrete(n)`` space gives
+          HEDGER the action values (0,), ..., (n-1,); a Box the interval [low, high] scaled to
+          a width of 0.2 (unless ``action_scale`` is given); observations are scaled to [0, 1]
+          from the Box bounds, an unbounded dimension from 2,000 random-action steps of a
+          seeded copy of the env (``envs.scaling``). Other spaces raise ``ValueError``.
       config: a ``HedgerConfig``; default ``HedgerConfig.for_env(env, **ENV_PRESETS[...])``.
       run_config: a ``RunConfig`` (epsilon, exploration, evaluation protocol); default
-        ``RunConfig(**ENV_PRESETS[...]["run"])``.
+        ``RunConfig(**ENV_PRESETS[...]["run"])`` (for a host-loop env with
+        ``eval_episodes=HOST_EVAL_EPISODES`` and ``eval_max_steps`` the env's time limit).
       seed: the learner's PRNG seed (``jax.random.PRNGKey(seed)``).
-      env_params: the env's params pytree (default ``env.default_params()``).
-      env_kwargs: keyword arguments for ``envs.make`` when ``env`` is a name.
-      chunk_episodes: phase-two episodes per jitted call of ``learn`` (progress granularity).
+      env_params: the env's params pytree (default ``env.default_params()``; none for a
+        host-loop env).
+      env_kwargs: keyword arguments for ``envs.make`` / ``gymnasium.make`` when ``env`` is an
+        id or name.
+      chunk_episodes: phase-two episodes per jitted call of ``learn`` (progress and callback
+        granularity; the host loop calls the callback after as many episodes).
       **overrides: ``HedgerConfig`` fields (and ``action_scale`` when ``config`` is None),
         e.g. ``capacity=512``.
 
-    Attributes: ``env``, ``env_id``, ``env_params``, ``config``, ``run_config``, ``memory``,
-    ``key`` (raw uint32 (2,)), ``seed``, ``num_timesteps`` (phase-two env steps),
+    Attributes: ``env`` (the functional env, or the ``environments.GymnasiumEnv`` whose
+    ``gym_env`` is the Gymnasium env), ``env_id``, ``env_params``, ``config``, ``run_config``,
+    ``memory``, ``key`` (raw uint32 (2,)), ``seed``, ``num_timesteps`` (phase-two env steps),
     ``num_demo_timesteps`` (phase-one training points), ``num_episodes`` (phase two),
-    ``ep_info_buffer`` (list of {"r": return, "l": length} of the last 100 training episodes).
+    ``ep_info_buffer`` (list of {"r": return, "l": length} of the last 100 training episodes),
+    ``host_loop`` (whether the env runs in the host loop).
     """
 
     def __init__(self, env: Any, config: Optional[HedgerConfig] = None,
@@ -238,24 +243,29 @@ class Hedger:
                  env_params: Any = None, env_kwargs: Optional[Dict[str, Any]] = None,
                  chunk_episodes: int = 10, **overrides: Any):
         self.env_kwargs = dict(env_kwargs or {})
-        if isinstance(env, str):
-            self.env, self._env_name = make_env(env, **self.env_kwargs)
-            self.env_id = env
+        resolved = _envs.resolve_env(env, self.env_kwargs)
+        self.env, self._env_name, self.env_id = resolved.env, resolved.name, resolved.env_id
+        self._from_instance = resolved.from_instance
+        self.host_loop = isinstance(self.env, GymnasiumEnv)
+        if self.host_loop:
+            if env_params is not None:
+                raise ValueError("env_params: a Gymnasium env run by the host loop has no "
+                                 "params pytree")
         else:
-            if self.env_kwargs:
-                raise ValueError("env_kwargs: only used when env is an id/name")
-            self.env = env
-            self._env_name = getattr(env, "name", None)
-            self.env_id = self._env_name
-        try:
-            hash(self.env)
-        except TypeError:
-            raise TypeError(f"env: must be hashable (a static jit argument); "
-                            f"{type(self.env).__name__} is not") from None
-        self.env_params = self.env.default_params() if env_params is None else env_params
+            try:
+                hash(self.env)
+            except TypeError:
+                raise TypeError(f"env: must be hashable (a static jit argument); "
+                                f"{type(self.env).__name__} is not") from None
+        if env_params is None:
+            env_params = (self.env.default_params() if resolved.params is None
+                          else resolved.params)
+        self.env_params = env_params
         preset = ENV_PRESETS.get(self._env_name, {"hedger": {}, "run": {}})
         if config is None:
             kwargs = dict(preset["hedger"])
+            if self.host_loop:
+                kwargs.setdefault("action_scale", self.env.default_action_scale)
             kwargs.update(overrides)
             config = HedgerConfig.for_env(self.env, self.env_params, **kwargs)
         else:
@@ -268,7 +278,11 @@ class Hedger:
                 config = config.replace(**overrides)
         self.config = config
         if run_config is None:
-            run_config = RunConfig(**preset["run"])
+            run_kwargs = dict(preset["run"])
+            if self.host_loop:
+                run_kwargs.setdefault("eval_episodes", HOST_EVAL_EPISODES)
+                run_kwargs.setdefault("eval_max_steps", self.env.max_steps)
+            run_config = RunConfig(**run_kwargs)
         if not isinstance(run_config, RunConfig):
             raise TypeError(f"run_config: expected a RunConfig, got {type(run_config).__name__}")
         self.run_config = run_config
@@ -279,6 +293,8 @@ class Hedger:
             raise ValueError(f"chunk_episodes: must be >= 1, got {chunk_episodes}")
         self.chunk_episodes = int(chunk_episodes)
         self._env_index = self._check_env_config()
+        self._action_start = self.env.action_start if self.host_loop else 0
+        self._buffer: Optional[_envs.EpisodeBuffer] = None
         self.memory = init_memory(config)
         self.key = jax.random.PRNGKey(self.seed)
         self.num_timesteps = 0
@@ -348,6 +364,8 @@ class Hedger:
         if reset_num_timesteps:
             self.num_timesteps = 0
         memory_check(self.memory)
+        if self.host_loop:
+            return self._learn_host(total, progress_bar, callback)
         bar = self._progress(total, progress_bar, "HEDGER learn")
         done = 0
         try:
@@ -363,9 +381,7 @@ class Hedger:
                 done += steps
                 self.num_timesteps += steps
                 self.num_episodes += n_ep
-                self.ep_info_buffer.extend({"r": float(r), "l": int(n)}
-                                           for r, n in zip(returns, lengths))
-                del self.ep_info_buffer[:-100]
+                self._record_episodes(lengths, returns)
                 if bar is not None:
                     bar.update(min(steps, total - bar.n))
                 memory_check(self.memory)
@@ -375,6 +391,60 @@ class Hedger:
                              returns=returns)) is False:
                     break
         finally:
+            if bar is not None:
+                bar.close()
+        return self
+
+    def _record_episodes(self, lengths: np.ndarray, returns: np.ndarray) -> None:
+        self.ep_info_buffer.extend({"r": float(r), "l": int(n)}
+                                   for r, n in zip(returns, lengths))
+        del self.ep_info_buffer[:-100]
+
+    def _learn_host(self, total: int, progress_bar: bool, callback) -> "Hedger":
+        """``learn`` for a Gymnasium env: episodes on the host (``environments.run_episode``,
+        one jitted epsilon-greedy action per step), each replayed in reverse by one jitted
+        call on the episode padded to the cap (``environments.replay_episode``)."""
+        cap = self._max_steps()
+        if self._buffer is None or self._buffer.length != cap:
+            self._buffer = _envs.EpisodeBuffer(cap, self.config.state_dim,
+                                               self.config.action_dim)
+        buf, cfg, run = self._buffer, self.config, self.run_config
+        self.memory = _envs.refresh(self.memory, config=cfg)   # after demonstrations or load
+        bar = self._progress(total, progress_bar, "HEDGER learn")
+        done, lengths, returns = 0, [], []
+        try:
+            while done < total:
+                k_env, k_act = jax.random.split(self._next_key())
+                memory = self.memory
+                ep = _envs.run_episode(
+                    self.env, lambda obs, t: _envs.explore_step(memory, obs, k_act, t,
+                                                                config=cfg, run=run),
+                    _envs.seed_from_key(k_env), cap, buf)
+                self.memory = _envs.replay_episode(self.memory, buf.transition(ep.length),
+                                                   jnp.int32(ep.length), config=cfg)
+                done += ep.length
+                self.num_timesteps += ep.length
+                self.num_episodes += 1
+                lengths.append(ep.length)
+                returns.append(ep.ret)
+                if bar is not None:
+                    bar.update(min(ep.length, total - bar.n))
+                # Waits for the replay, so the next episode may overwrite the NumPy buffer.
+                memory_check(self.memory)
+                if len(lengths) == self.chunk_episodes or done >= total:
+                    lengths_a = np.asarray(lengths, np.int32)
+                    returns_a = np.asarray(returns, np.float32)
+                    self._record_episodes(lengths_a, returns_a)
+                    lengths, returns = [], []
+                    if callback is not None and callback(
+                            dict(num_timesteps=self.num_timesteps,
+                                 num_episodes=self.num_episodes,
+                                 memory_size=int(self.memory.size), lengths=lengths_a,
+                                 returns=returns_a)) is False:
+                        break
+        finally:
+            if lengths:
+                self._record_episodes(np.asarray(lengths), np.asarray(returns))
             if bar is not None:
                 bar.close()
         return self
@@ -442,6 +512,10 @@ class Hedger:
         return self
 
     def _learn_from_policy(self, policy, n_episodes, max_steps, start, progress_bar):
+        if self.host_loop:
+            raise InvalidInputError("a policy in control needs one of the project's JAX envs; "
+                                    f"{self.env_id or self.env.name!r} runs in the host loop: "
+                                    "pass recorded demonstrations instead")
         if n_episodes is None or isinstance(n_episodes, bool) or int(n_episodes) < 1:
             raise InvalidInputError(f"n_episodes: a policy needs n_episodes >= 1, got "
                                     f"{n_episodes!r}")
@@ -511,7 +585,7 @@ class Hedger:
         del state, episode_start
         acts, idx, batched = self._act(observation, deterministic, key)
         if self.config.is_discrete:
-            out = self._env_index[idx]
+            out = self._env_index[idx] + self._action_start
         else:
             out = acts.astype(np.float32)
         return (out if batched else out[0]), None
@@ -532,6 +606,7 @@ class Hedger:
         if not np.issubdtype(idx.dtype, np.integer):
             raise InvalidInputError(f"action: a discrete env takes integer indices, got dtype "
                                     f"{idx.dtype}")
+        idx = idx - self._action_start
         values = self.env.action_space.values_array()
         if np.any((idx < 0) | (idx >= len(values))):
             raise InvalidInputError(f"action: index out of range [0, {len(values)}): {idx}")
@@ -554,12 +629,21 @@ class Hedger:
     # -------------------------------------------------------------------------- evaluation
     def evaluate(self, n_episodes: Optional[int] = None, *, max_steps: Optional[int] = None,
                  key: Any = None) -> Dict[str, float]:
-        """The greedy policy, learning off (``agent.evaluate``, vmapped over episodes).
+        """The greedy policy, learning off.
 
         n_episodes / max_steps: default ``run_config.eval_episodes`` / ``eval_max_steps``.
         key: default ``fold_in(PRNGKey(seed), 1)``: every call without a key uses the same
-        evaluation starts (common random numbers across calls). Returns
-        ``{"mean_steps": float, "success_rate": float}`` (failures count ``max_steps``).
+        evaluation starts (common random numbers across calls).
+
+        A JAX env (``agent.evaluate``, episodes vmapped): returns ``{"mean_steps": float,
+        "success_rate": float}``, the mean steps to the goal (failures count ``max_steps``).
+
+        A host-loop Gymnasium env: ``n_episodes`` greedy episodes on the host, each reset with
+        a seed drawn from ``key`` and run until Gymnasium's ``terminated`` or ``truncated`` or
+        ``max_steps`` steps. Returns ``{"mean_steps": mean episode length, "mean_return":
+        mean undiscounted return, "success_rate": fraction of episodes that *terminated*
+        (not truncated)}`` -- for an env whose termination is a failure (CartPole's pole
+        falling) that is the failure rate, and for one that never terminates (Pendulum) 0.
         """
         n = int(self.run_config.eval_episodes if n_episodes is None else n_episodes)
         m = int(self.run_config.eval_max_steps if max_steps is None else max_steps)
@@ -567,14 +651,32 @@ class Hedger:
             raise InvalidInputError(f"n_episodes and max_steps must be >= 1, got {n}, {m}")
         k = (jax.random.fold_in(jax.random.PRNGKey(self.seed), 1) if key is None
              else jnp.asarray(check_key(key)))
+        if self.host_loop:
+            return self._evaluate_host(n, m, k)
         ev: Evaluation = _evaluate_jit(self.memory, k, self.env_params, env=self.env,
                                        config=self.config, n_episodes=n, max_steps=m)
         return {"mean_steps": float(ev.mean_steps), "success_rate": float(ev.success_rate)}
 
+    def _evaluate_host(self, n: int, max_steps: int, key: jax.Array) -> Dict[str, float]:
+        """``evaluate`` for a host-loop env: n greedy episodes of at most max_steps."""
+        cfg = self.config
+        memory = _envs.refresh(self.memory, config=cfg)
+        keys = np.asarray(jax.random.split(key, n))
+        results = []
+        for k in keys:
+            k_env, k_act = jax.random.split(jnp.asarray(k))
+            results.append(_envs.run_episode(
+                self.env, lambda obs, t: _envs.greedy_step(memory, obs, k_act, t, config=cfg),
+                _envs.seed_from_key(k_env), max_steps))
+        return {"mean_steps": float(np.mean([r.length for r in results])),
+                "mean_return": float(np.mean([r.ret for r in results])),
+                "success_rate": float(np.mean([r.terminated for r in results]))}
+
     # -------------------------------------------------------------------------- persistence
     def save(self, path: Union[str, os.PathLike]) -> str:
         """Save config, run config, memory, key, counters and env params to one file
-        (``hedger_jax.checkpoint``: atomic, checksummed). Returns the path."""
+        (``hedger_jax.checkpoint``: atomic, checksummed), with the env's id (a Gymnasium id
+        for a host-loop env) for ``load``. Returns the path."""
         leaves = jax.tree_util.tree_leaves(self.env_params)
         extra = {"key": np.asarray(self.key),
                  "counters": np.asarray([self.num_timesteps, self.num_demo_timesteps,
@@ -583,7 +685,8 @@ class Hedger:
             extra[f"env_params/{i}"] = np.asarray(leaf)
         meta = {"env_name": self._env_name, "env_kwargs": self.env_kwargs,
                 "env_max_steps": int(self.env.max_steps), "chunk_episodes": self.chunk_episodes,
-                "n_env_params": len(leaves)}
+                "n_env_params": len(leaves), "host_loop": self.host_loop,
+                "env_from_instance": self._from_instance}
         return save_checkpoint(path, self.config, self.memory, self.run_config, seed=self.seed,
                                env_id=self.env_id, extra_arrays=extra, metadata=meta)
 
@@ -592,8 +695,10 @@ class Hedger:
              config: Optional[HedgerConfig] = None) -> "Hedger":
         """Load a learner saved by ``save``.
 
-        env: default: rebuilt from the stored env id (and ``env_kwargs``); pass the env object
-        when the learner was built from a custom functional env. env_params: default the
+        env: default: rebuilt from the stored env id (and ``env_kwargs``): ``envs.make`` for
+        the project's envs, ``gymnasium.make`` for a Gymnasium id. Pass the env (object, or
+        Gymnasium instance) when the learner was built from an env object: a Gymnasium
+        instance may carry wrappers or settings its id does not. env_params: default the
         stored ones. config: when given, a file with a different config is refused
         (``CheckpointError`` naming the differing fields).
         """
@@ -603,12 +708,16 @@ class Hedger:
         meta = ck.metadata
         if env is None:
             env_id = meta.get("env_id")
+            if meta.get("host_loop") and meta.get("env_from_instance"):
+                raise CheckpointError(f"checkpoint {os.fspath(path)!r}: the learner was built "
+                                      f"from a Gymnasium env instance ({env_id or 'no id'}); "
+                                      "pass env= (an env like it) to load it")
             if env_id is None:
                 raise CheckpointError(f"checkpoint {os.fspath(path)!r}: no env id stored; pass "
                                       "env=")
             env = env_id
         kwargs = dict(meta.get("env_kwargs") or {}) if isinstance(env, str) else {}
-        if isinstance(env, str) and "max_steps" not in kwargs:
+        if isinstance(env, str) and _envs.is_functional_name(env) and "max_steps" not in kwargs:
             kwargs["max_steps"] = meta.get("env_max_steps")
             if kwargs["max_steps"] is None:
                 del kwargs["max_steps"]
