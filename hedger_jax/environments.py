@@ -43,7 +43,7 @@ from typing import Any, Callable, Dict, NamedTuple, Optional, Tuple
 import jax
 import numpy as np
 
-from hedger_jax import rng
+
 from hedger_jax.agent import RunConfig, explore_action, train_prefix
 from hedger_jax.config import HedgerConfig
 from hedger_jax.cpu import jit as _jit
@@ -327,7 +327,7 @@ def _make_by_id(env_id: str, env_kwargs: Dict[str, Any]) -> Any:
 # ------------------------------------------------------------------------------------------
 def _step_key(key: jax.Array, t: jax.Array) -> jax.Array:
     """The acting key of step t of an episode keyed ``key`` (as ``agent.rollout`` derives it)."""
-    return rng.fold_in(rng.fold_in(key, t), 0)
+    return jax.random.fold_in(jax.random.fold_in(key, t), 0)
 
 
 @functools.partial(_jit, static_argnames=("config", "run"))
