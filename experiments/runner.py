@@ -27,7 +27,7 @@ import numpy as np
 
 import hedger_jax
 from hedger_jax.agent import BlockResult, make_train, transitions_from_demonstrations
-from hedger_jax.config import HedgerConfig
+from hedger_jax.config import HedgerConfig, selection_radius
 from hedger_jax.cpu import jit as _jit
 from hedger_jax.files import atomic_write
 from hedger_jax.memory import memory_check
@@ -108,11 +108,15 @@ def static_part(variant: Variant) -> Variant:
 
 def group_config(variants: List[Variant]) -> HedgerConfig:
     """The static config of a group of variants sharing a static part: theirs, with
-    ``max_bandwidth`` raised to the largest bandwidth any of them uses."""
+    ``max_bandwidth`` raised so that the grid index covers the widest selection radius any
+    of them uses (a wider bandwidth, a smaller min_weight, a data-chosen kernel's range)."""
     config = config_of(variants[0])
-    widest = max([config.bandwidth] + [float(dict(v.params).get("bandwidth", 0.0))
-                                       for v in variants])
-    return config.replace(max_bandwidth=max(widest, config.max_bandwidth))
+    radius = lambda p: selection_radius(  # noqa: E731
+        p.get("bandwidth", config.bandwidth), p.get("min_weight", config.min_weight),
+        p.get("kernel_k", config.kernel_k), p.get("kernel_range", config.kernel_range))
+    widest = max(radius(dict(v.params)) for v in variants)
+    needed = config.bandwidth * widest / config.k_thresh
+    return config.replace(max_bandwidth=max(needed, config.max_bandwidth))
 
 
 def params_of(variant: Variant, config: HedgerConfig) -> HedgerParams:

@@ -56,9 +56,24 @@ def reject_traced(owner: str, name: str, value: Any) -> None:
 
 
 #: The ``HedgerConfig`` and ``RunConfig`` fields that ``HedgerParams`` carries as traced values.
-_TRACED_FIELDS = ("bandwidth", "min_weight", "k_thresh", "k_min", "alpha", "gamma",
+_TRACED_FIELDS = ("bandwidth", "min_weight", "kernel_k", "kernel_range", "region_scale",
+                  "value_eps",
+                  "k_thresh", "k_min", "alpha", "gamma",
                   "default_value", "ridge", "ivh_tol", "input_offset", "input_scale", "use_ivh",
                   "region_update", "epsilon", "noise_std")
+
+
+def selection_radius(bandwidth, min_weight, kernel_k=0, kernel_range=1.0):
+    """The default k_thresh: where the widest kernel's weight falls to ``min_weight``,
+    bandwidth sqrt(ln(1 / min_weight)), times ``kernel_range`` with a data-chosen width
+    (``kernel_k`` > 0). NumPy in, NumPy out (Python floats for Python floats)."""
+    import numpy as np
+
+    h = np.asarray(bandwidth, np.float64) * np.where(np.asarray(kernel_k) > 0,
+                                                       np.asarray(kernel_range, np.float64), 1.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = h * np.sqrt(np.log(1.0 / np.asarray(min_weight, np.float64)))
+    return float(out) if np.ndim(out) == 0 else out
 
 
 def _tuple_of_floats(name: str, value: Any, length: int) -> Tuple[float, ...]:
@@ -92,8 +107,15 @@ class HedgerConfig:
     Fewer than ``k_min`` (default d + 1, the number of local-linear parameters) or a query
     outside the independent-variable hull (``use_ivh``) gives ``default_value`` ("don't know").
 
+    Kernel width chosen from the data (beyond the paper; off by default): with ``kernel_k``
+    = m > 0 each query's kernel width is the one that gives its m-th nearest neighbour the
+    weight ``min_weight``, kept within [bandwidth / kernel_range, bandwidth * kernel_range];
+    neighbours are then searched within the widest kernel's radius (the default k_thresh is
+    ``kernel_range`` times the paper's).
+
     Training: ``alpha``/``gamma`` of Q-learning; ``region_update`` moves every neighbour
-    towards the new value by its kernel weight (Algorithm 2 lines 7-8).
+    towards the new value by its kernel weight (Algorithm 2 lines 7-8), scaled by
+    ``region_scale`` (1: the paper).
 
     Traced settings: bandwidth, min_weight, k_thresh, k_min, alpha, gamma, default_value,
     ridge, ivh_tol, input_offset, input_scale, use_ivh and region_update are the defaults of
@@ -138,6 +160,10 @@ class HedgerConfig:
     bandwidth: float = 0.015
     k_thresh: Optional[float] = None
     min_weight: float = 0.01
+    kernel_k: int = 0
+    kernel_range: float = 4.0
+    region_scale: float = 1.0
+    value_eps: float = 0.0
     k_min: Optional[int] = None
     max_neighbours: int = 32
     default_value: float = 0.0
@@ -192,8 +218,23 @@ class HedgerConfig:
             raise ValueError(f"bandwidth: must be a finite number > 0, got {self.bandwidth}")
         if not (0.0 < self.min_weight < 1.0):
             raise ValueError(f"min_weight: must be in (0, 1), got {self.min_weight}")
+        if isinstance(self.kernel_k, bool) or int(self.kernel_k) != self.kernel_k \
+                or self.kernel_k < 0:
+            raise ValueError(f"kernel_k: must be an integer >= 0, got {self.kernel_k!r}")
+        set_("kernel_k", int(self.kernel_k))
+        if not (math.isfinite(self.kernel_range) and self.kernel_range >= 1.0):
+            raise ValueError(f"kernel_range: must be a finite number >= 1, got "
+                             f"{self.kernel_range}")
+        set_("kernel_range", float(self.kernel_range))
+        if not (0.0 <= self.region_scale <= 1.0):
+            raise ValueError(f"region_scale: must be in [0, 1], got {self.region_scale}")
+        set_("region_scale", float(self.region_scale))
+        if not (math.isfinite(self.value_eps) and self.value_eps >= 0.0):
+            raise ValueError(f"value_eps: must be a finite number >= 0, got {self.value_eps}")
+        set_("value_eps", float(self.value_eps))
         if self.k_thresh is None:
-            set_("k_thresh", float(self.bandwidth * math.sqrt(math.log(1.0 / self.min_weight))))
+            set_("k_thresh", selection_radius(self.bandwidth, self.min_weight, self.kernel_k,
+                                              self.kernel_range))
         if not (math.isfinite(self.k_thresh) and self.k_thresh > 0):
             raise ValueError(f"k_thresh: must be a finite number > 0, got {self.k_thresh}")
         set_("k_thresh", float(self.k_thresh))
@@ -335,7 +376,7 @@ class HedgerConfig:
         """A copy with some fields changed, re-validated. Unless given, k_thresh is derived
         again when bandwidth or min_weight changes, k_min when state_dim or action_dim
         changes, and max_bandwidth when bandwidth changes and it equalled bandwidth."""
-        if "bandwidth" in changes or "min_weight" in changes:
+        if {"bandwidth", "min_weight", "kernel_k", "kernel_range"} & set(changes):
             changes.setdefault("k_thresh", None)
         if "bandwidth" in changes and self.max_bandwidth == self.bandwidth:
             changes.setdefault("max_bandwidth", None)

@@ -26,7 +26,7 @@ import numpy as np
 from hedger_jax import index as _grid
 from hedger_jax.canonical import canonical_order
 from hedger_jax.config import HedgerConfig
-from hedger_jax.params import HedgerParams, resolve
+from hedger_jax.params import HedgerParams, resolve, to_fit_space
 from hedger_jax.validation import expect
 
 #: ``Memory.flags`` bit: a point was dropped because the memory was full ("error" policy).
@@ -223,6 +223,7 @@ def add_points(config: HedgerConfig, memory: Memory, states: jax.Array, actions:
     expect("actions", actions, (n, config.action_dim))
     expect("values", values, (n,))
     zs = scale_inputs(config, states, actions, params)
+    values = to_fit_space(resolve(config, params), jnp.asarray(values, jnp.float32))
 
     def body(mem, item):
         z, v = item

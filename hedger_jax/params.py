@@ -17,16 +17,20 @@ from typing import Any, NamedTuple, Optional
 
 import numpy as np
 
-from hedger_jax.config import HedgerConfig, StaticFieldError
+from hedger_jax.config import HedgerConfig, StaticFieldError, selection_radius
 
 #: Fields of ``HedgerParams``, in order.
-FIELDS = ("bandwidth", "min_weight", "k_thresh", "k_min", "alpha", "gamma", "default_value",
+FIELDS = ("bandwidth", "min_weight", "kernel_k", "kernel_range", "region_scale", "value_eps",
+          "k_thresh",
+          "k_min", "alpha", "gamma", "default_value",
           "ridge", "ivh_tol", "input_offset", "input_scale", "use_ivh", "region_update",
           "epsilon", "noise_std")
 #: The fields whose defaults come from ``RunConfig``, not ``HedgerConfig``.
 RUN_FIELDS = ("epsilon", "noise_std")
 #: The boolean switches.
 _BOOLS = ("use_ivh", "region_update")
+#: The fields the selection radius k_thresh is derived from.
+_RADIUS_FIELDS = ("bandwidth", "min_weight", "kernel_k", "kernel_range")
 #: The (d,) vectors; every other field is a scalar.
 _VECTORS = ("input_offset", "input_scale")
 
@@ -50,6 +54,10 @@ class HedgerParams(NamedTuple):
 
     bandwidth: Any
     min_weight: Any
+    kernel_k: Any
+    kernel_range: Any
+    region_scale: Any
+    value_eps: Any
     k_thresh: Any
     k_min: Any
     alpha: Any
@@ -90,14 +98,12 @@ class HedgerParams(NamedTuple):
                     "lengths), not a HedgerParams field; sweep it with one program per value")
             raise TypeError(f"HedgerParams.create: unknown fields {unknown}; known: {FIELDS}")
         base = cls.defaults(config, run)._asdict()
-        if "k_thresh" not in values and ("bandwidth" in values or "min_weight" in values):
+        if "k_thresh" not in values and set(values) & set(_RADIUS_FIELDS):
             base.pop("k_thresh")                      # derived again from the new values
         base.update(values)
         if "k_thresh" not in base:
-            h = np.asarray(base["bandwidth"], np.float64)
-            w = np.asarray(base["min_weight"], np.float64)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                base["k_thresh"] = h * np.sqrt(np.log(1.0 / w))
+            base["k_thresh"] = selection_radius(base["bandwidth"], base["min_weight"],
+                                                base["kernel_k"], base["kernel_range"])
         params = _as_arrays(config, base)
         check_params(config, params)
         return params
@@ -106,13 +112,14 @@ class HedgerParams(NamedTuple):
         """A copy with some fields changed; ``k_thresh`` is derived again when bandwidth or
         min_weight changes (and is not given). Works on NumPy and traced leaves alike (no
         host check: use ``check_params`` for that)."""
-        if "k_thresh" not in values and ("bandwidth" in values or "min_weight" in values):
+        if "k_thresh" not in values and set(values) & set(_RADIUS_FIELDS):
             import jax.numpy as jnp
 
-            h = values.get("bandwidth", self.bandwidth)
-            w = values.get("min_weight", self.min_weight)
-            values["k_thresh"] = jnp.asarray(h, jnp.float32) * jnp.sqrt(
-                jnp.log(1.0 / jnp.asarray(w, jnp.float32)))
+            get = lambda name: jnp.asarray(values.get(name, getattr(self, name)))  # noqa: E731
+            h = get("bandwidth").astype(jnp.float32) * jnp.where(
+                get("kernel_k") > 0, get("kernel_range").astype(jnp.float32), 1.0)
+            values["k_thresh"] = h * jnp.sqrt(jnp.log(1.0 / get("min_weight").astype(
+                jnp.float32)))
         return self._replace(**values)
 
 
@@ -130,9 +137,9 @@ def _as_arrays(config: HedgerConfig, values: dict) -> HedgerParams:
             out[name] = v.astype(np.float32)
         elif name in _BOOLS:
             out[name] = v.astype(bool)
-        elif name == "k_min":
+        elif name in ("k_min", "kernel_k"):
             if np.any(np.asarray(v) != np.round(v)):
-                raise InvalidParamsError(f"k_min: must be an integer, got {v}")
+                raise InvalidParamsError(f"{name}: must be an integer, got {v}")
             out[name] = v.astype(np.int32)
         else:
             out[name] = v.astype(np.float32)
@@ -166,6 +173,12 @@ def check_params(config: HedgerConfig, params: HedgerParams) -> HedgerParams:
     _bad("min_weight", p["min_weight"], (p["min_weight"] > 0) & (p["min_weight"] < 1),
          "must be in (0, 1)")
     _bad("k_thresh", p["k_thresh"], p["k_thresh"] > 0, "must be > 0")
+    _bad("kernel_k", p["kernel_k"], (p["kernel_k"] >= 0) & (p["kernel_k"] <= config.max_neighbours),
+         f"must be in [0, max_neighbours = {config.max_neighbours}]")
+    _bad("kernel_range", p["kernel_range"], p["kernel_range"] >= 1, "must be >= 1")
+    _bad("value_eps", p["value_eps"], p["value_eps"] >= 0, "must be >= 0")
+    _bad("region_scale", p["region_scale"], (p["region_scale"] >= 0) & (p["region_scale"] <= 1),
+         "must be in [0, 1]")
     for name in ("alpha", "gamma", "epsilon"):
         _bad(name, p[name], (p[name] >= 0) & (p[name] <= 1), "must be in [0, 1]")
     _bad("noise_std", p["noise_std"], p["noise_std"] >= 0, "must be >= 0")
@@ -201,6 +214,30 @@ def resolve(config: HedgerConfig, params: Optional[HedgerParams]) -> HedgerParam
         expect(f"params.{name}", getattr(params, name), shape,
                "bool" if name in _BOOLS else "real")
     return params
+
+
+def to_fit_space(p: HedgerParams, q: Any) -> Any:
+    """Values as the memory stores and the fit sees them: q itself (``value_eps`` 0, the
+    paper), else sign(q) log1p(|q| / value_eps), which turns values spanning orders of
+    magnitude (gamma^steps) into numbers that change about linearly with the steps."""
+    if isinstance(p.value_eps, float) and p.value_eps == 0.0:
+        return q
+    import jax.numpy as jnp
+
+    eps = jnp.asarray(p.value_eps, jnp.float32)
+    out = jnp.sign(q) * jnp.log1p(jnp.abs(q) / jnp.where(eps > 0, eps, 1.0))
+    return jnp.where(eps > 0, out, q)
+
+
+def from_fit_space(p: HedgerParams, y: Any) -> Any:
+    """The inverse of ``to_fit_space``."""
+    if isinstance(p.value_eps, float) and p.value_eps == 0.0:
+        return y
+    import jax.numpy as jnp
+
+    eps = jnp.asarray(p.value_eps, jnp.float32)
+    out = jnp.sign(y) * eps * jnp.expm1(jnp.abs(y))
+    return jnp.where(eps > 0, out, y)
 
 
 def flag(value: Any, on: Any, off: Any):

@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 
 from hedger_jax.config import HedgerConfig
-from hedger_jax.params import HedgerParams, flag, resolve
+from hedger_jax.params import HedgerParams, flag, from_fit_space, resolve
 from hedger_jax.validation import expect
 from hedger_jax.lwr import kernel_weights, local_fit_columns
 from hedger_jax.memory import (Memory, Neighbours, scale_inputs, select_neighbours,
@@ -57,13 +57,31 @@ def predict_from_neighbours(config: HedgerConfig, memory: Memory, z: jax.Array,
     # computed), so brute force and the grid index give bit-identical fits.
     sqdist = squared_distances(zt, jnp.zeros((zt.shape[0],), zt.dtype))
     p = resolve(config, params)
-    w = kernel_weights(sqdist, p.bandwidth, nb.mask)
+    w = kernel_weights(sqdist, kernel_width(p, sqdist, nb.mask), nb.mask)
     fit = local_fit_columns(zt, y, w, nb.mask, ridge=p.ridge, ivh_tol=p.ivh_tol)
+    fit = fit._replace(value=from_fit_space(p, fit.value))
     count = jnp.sum(nb.mask).astype(jnp.int32)
     known = (count >= p.k_min) & jnp.isfinite(fit.value)
     known = flag(p.use_ivh, known & fit.inside, known)
     value = jnp.where(known, fit.value, jnp.float32(p.default_value))
     return Prediction(value, known, count, nb.indices, w, nb.mask)
+
+
+def kernel_width(p: HedgerParams, sqdist: jax.Array, mask: jax.Array) -> jax.Array:
+    """The query's kernel width h (): ``p.bandwidth`` (the paper), or with ``p.kernel_k`` = m
+    > 0 the width that gives the m-th nearest neighbour (squared distances sqdist (k,), real
+    where mask) the weight ``min_weight``, kept within [bandwidth / kernel_range, bandwidth
+    * kernel_range] (the widest when fewer than m neighbours)."""
+    if isinstance(p.kernel_k, int) and p.kernel_k == 0:
+        return p.bandwidth                              # the paper's: same program as before
+    d2 = jnp.where(mask, sqdist, jnp.inf)
+    # The m-th smallest without a sort (no sort inside loop kernels): the least d2_i with at
+    # least m entries <= it.
+    at_or_below = jnp.sum((d2[None, :] <= d2[:, None]).astype(jnp.int32), axis=1)
+    d2_m = jnp.min(jnp.where(at_or_below >= p.kernel_k, d2, jnp.inf))
+    h = jnp.sqrt(d2_m / jnp.log(1.0 / jnp.asarray(p.min_weight, jnp.float32)))
+    h = jnp.clip(h, p.bandwidth / p.kernel_range, p.bandwidth * p.kernel_range)
+    return jnp.where(p.kernel_k > 0, h, p.bandwidth)
 
 
 def predict_detailed(config: HedgerConfig, memory: Memory, state: jax.Array,

@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 
 from hedger_jax.config import HedgerConfig
-from hedger_jax.params import HedgerParams, flag, resolve
+from hedger_jax.params import HedgerParams, flag, resolve, to_fit_space
 from hedger_jax.validation import expect_transition
 from hedger_jax.greedy import greedy_candidates, greedy_value_from
 from hedger_jax.memory import (FLAG_NONFINITE, Memory, add_scaled, scale_inputs,
@@ -115,9 +115,11 @@ def train_step(config: HedgerConfig, memory: Memory, transition: Transition, cac
     next_ok = jnp.all(jnp.isfinite(t.next_obs)) | jnp.asarray(t.terminated, bool)
     q_new = jnp.where(next_ok, q_new, jnp.nan)
     if p.region_update is not False:          # a constant False: not in the program at all
-        memory = region_update(memory, pred.indices, pred.weights, pred.mask, q_new,
-                               flag(p.region_update, valid, False))
-    memory = add_scaled(config, memory, z, q_new, valid)
+        weights = pred.weights if isinstance(p.region_scale, float) and p.region_scale == 1.0 \
+            else pred.weights * p.region_scale
+        memory = region_update(memory, pred.indices, weights, pred.mask,
+                               to_fit_space(p, q_new), flag(p.region_update, valid, False))
+    memory = add_scaled(config, memory, z, to_fit_space(p, q_new), valid)
     return memory, TrainInfo(pred.value, q_next, q_new, pred.known)
 
 

@@ -45,12 +45,26 @@ def scale(s, a, offset=None, scale_=None) -> np.ndarray:
     return (x - off) * sc
 
 
+def to_fit(q, value_eps: float = 0.0):
+    """The fit's value space: q, or sign(q) log1p(|q| / value_eps)."""
+    q = np.asarray(q, np.float64)
+    return q if value_eps == 0 else np.sign(q) * np.log1p(np.abs(q) / value_eps)
+
+
+def from_fit(y, value_eps: float = 0.0):
+    y = np.asarray(y, np.float64)
+    return y if value_eps == 0 else np.sign(y) * value_eps * np.expm1(np.abs(y))
+
+
 def ref_predict(points: np.ndarray, values: np.ndarray, size: int, zq: np.ndarray, *,
                 bandwidth: float, k_thresh: Optional[float] = None, k_min: int,
                 max_neighbours: int, default_value: float = 0.0, use_ivh: bool = True,
-                ivh_tol: float = 1e-3, rel_margin: float = 1e-4) -> RefPrediction:
+                ivh_tol: float = 1e-3, rel_margin: float = 1e-4, kernel_k: int = 0,
+                kernel_range: float = 4.0, min_weight: float = 0.01,
+                value_eps: float = 0.0) -> RefPrediction:
     """Algorithm 1 in float64. ``points``: (N, d) rows = stored scaled inputs; slots >= size
-    are empty and ignored."""
+    are empty and ignored. ``values`` are raw Q values; with ``value_eps`` the fit is made
+    on ``to_fit`` of them and its intercept mapped back."""
     points = np.asarray(points, np.float64)[:size]
     values = np.asarray(values, np.float64)[:size]
     zq = np.asarray(zq, np.float64)
@@ -67,7 +81,13 @@ def ref_predict(points: np.ndarray, values: np.ndarray, size: int, zq: np.ndarra
         order = order[:max_neighbours]
     idx = order
     dist = d[idx]
-    kappa = np.exp(-dist ** 2 / bandwidth ** 2)
+    h = bandwidth
+    if kernel_k > 0:
+        # The data-chosen width: the m-th nearest neighbour gets weight min_weight.
+        d_m = np.sort(dist)[kernel_k - 1] if len(dist) >= kernel_k else np.inf
+        h = float(np.clip(d_m / np.sqrt(np.log(1.0 / min_weight)), bandwidth / kernel_range,
+                          bandwidth * kernel_range))
+    kappa = np.exp(-dist ** 2 / h ** 2)
     n = len(idx)
     if n < k_min:
         return RefPrediction(float(default_value), False, n, idx, dist, kappa,
@@ -91,8 +111,9 @@ def ref_predict(points: np.ndarray, values: np.ndarray, size: int, zq: np.ndarra
             return RefPrediction(float(default_value), False, n, idx, dist, kappa, lhs, rhs,
                                  ambiguous)
     sw = np.sqrt(kappa)[:, None]
-    beta, *_ = np.linalg.lstsq(X * sw, values[idx] * sw[:, 0], rcond=None)
-    return RefPrediction(float(beta[0]), True, n, idx, dist, kappa, lhs, rhs, ambiguous)
+    beta, *_ = np.linalg.lstsq(X * sw, to_fit(values[idx], value_eps) * sw[:, 0], rcond=None)
+    return RefPrediction(float(from_fit(beta[0], value_eps)), True, n, idx, dist, kappa, lhs,
+                         rhs, ambiguous)
 
 
 @dataclasses.dataclass
@@ -109,13 +130,20 @@ class RefParams:
     gamma: float = 0.8
     region_update: bool = True
     discrete_actions: Optional[tuple] = None
+    kernel_k: int = 0
+    kernel_range: float = 4.0
+    min_weight: float = 0.01
+    region_scale: float = 1.0
+    value_eps: float = 0.0
 
     def predict(self, points, values, size, zq) -> RefPrediction:
         return ref_predict(points, values, size, zq, bandwidth=self.bandwidth,
                            k_thresh=self.k_thresh, k_min=self.k_min,
                            max_neighbours=self.max_neighbours,
                            default_value=self.default_value, use_ivh=self.use_ivh,
-                           ivh_tol=self.ivh_tol)
+                           ivh_tol=self.ivh_tol, kernel_k=self.kernel_k,
+                           kernel_range=self.kernel_range, min_weight=self.min_weight,
+                           value_eps=self.value_eps)
 
 
 def ref_greedy_value_discrete(p: RefParams, points, values, size, s) -> float:
@@ -136,10 +164,15 @@ def ref_train_step(p: RefParams, points, values, size, s, a, r, s_next, terminat
     q = pred.value
     q_next = 0.0 if terminated else ref_greedy_value_discrete(p, points, values, size, s_next)
     q_new = q + p.alpha * (r + p.gamma * q_next - q)
+    # Region update and the new point in the fit's value space (the identity by default):
+    # the returned values are as the memory stores them.
+    stored = to_fit(values, p.value_eps)
+    target = to_fit(q_new, p.value_eps)
     if p.region_update:
-        values[pred.idx] = values[pred.idx] + pred.kappa * (q_new - values[pred.idx])
+        kappa = p.region_scale * pred.kappa
+        stored[pred.idx] = stored[pred.idx] + kappa * (target - stored[pred.idx])
     new_points = np.concatenate([points, zq[None, :]], axis=0)
-    new_values = np.concatenate([values, [q_new]])
+    new_values = np.concatenate([stored, [target]])
     return new_points, new_values, q, q_next, q_new, pred
 
 
