@@ -49,6 +49,7 @@ from hedger_jax.config import HedgerConfig  # noqa: E402
 from hedger_jax.memory import init_memory, refresh_index, select_neighbours  # noqa: E402
 from hedger_jax.index import geometry, merge_threshold  # noqa: E402
 from hedger_jax.prediction import predict_scaled  # noqa: E402
+import hedger_jax  # noqa: E402
 from hedger_jax import cpu as hj_cpu  # noqa: E402
 from numpy_baseline import NumpyHedger, time_episodes  # noqa: E402
 
@@ -386,10 +387,13 @@ def bench_train(settings, rng, results, quick):
             baseline_agent(mc_config(cap, "brute", continuous), z.astype(np.float64),
                            v.astype(np.float64)),
             continuous, min_cpu=0.5 if quick else 2.0, min_episodes=1 if quick else 2)
-        for kind in ("brute", "grid"):
-            if kind == "brute" and cap > 100_000:
+        # "adaptive": the grid with the data-chosen kernel width (hedger_jax.ADAPTIVE), at
+        # 2e4 slots only (its 8x selection radius makes the larger rows take many minutes).
+        for kind in ("brute", "grid", "adaptive"):
+            if (kind == "brute" and cap > 100_000) or (kind == "adaptive" and cap > 20_000):
                 continue
-            cfg = mc_config(cap, kind, continuous)
+            cfg = mc_config(cap, "grid", continuous, **hedger_jax.ADAPTIVE) \
+                if kind == "adaptive" else mc_config(cap, kind, continuous)
             n_eps = episodes_per_call(cfg, 2 if quick else 4)
             row[f"{kind}_episodes_per_call"] = n_eps
             pps, t_first, wall = time_training(
@@ -401,7 +405,9 @@ def bench_train(settings, rng, results, quick):
         row["baseline_points_per_s"] = base.points / base.cpu
         row["baseline_points_per_wall_s"] = base.points / base.wall
         row["baseline_episodes"] = base.episodes
-        for kind in ("brute", "grid"):
+        if "adaptive_points_per_s" in row:
+            row["adaptive_vs_grid"] = row["adaptive_points_per_s"] / row["grid_points_per_s"]
+        for kind in ("brute", "grid", "adaptive"):
             if f"{kind}_points_per_s" in row:
                 row[f"{kind}_ratio"] = row[f"{kind}_points_per_s"] / row["baseline_points_per_s"]
         rows.append(row)
@@ -527,13 +533,15 @@ def markdown(results) -> str:
                 "grid column's calls (one after each), so both are timed over the same "
                 "minutes.", "",
                 "| actions | capacity | stored points | brute /s | grid /s | grid /s wall | "
-                "baseline /s | brute ratio | grid ratio |", "|---|---|---|---|---|---|---|---|---|"]
+                "baseline /s | brute ratio | grid ratio | adaptive /s | adaptive / grid |",
+                "|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in results["train"]:
             out.append(f"| {r['actions']} | {r['capacity']:,} | {r['prefill']:,} | "
                        f"{fmt(r.get('brute_points_per_s'))} | {fmt(r.get('grid_points_per_s'))} | "
                        f"{fmt(r.get('grid_points_per_wall_s'))} | "
                        f"{fmt(r['baseline_points_per_s'])} | {fmt(r.get('brute_ratio'), 1)} | "
-                       f"{fmt(r.get('grid_ratio'), 1)} |")
+                       f"{fmt(r.get('grid_ratio'), 1)} | {fmt(r.get('adaptive_points_per_s'))} | "
+                       f"{fmt(r.get('adaptive_vs_grid'), 2)} |")
         out.append("")
     if "seeds" in results:
         out += ["## (c) Total training points/s vs vmapped seeds (discrete)", "",

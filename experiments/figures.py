@@ -4,7 +4,7 @@ A figure is a thin configuration over the library; ``experiments.runner`` runs i
 ``quick`` (minutes on 2 CPU cores; fewer evaluation episodes and a shorter run) and
 ``full`` (the paper's lengths and its 2500-episode evaluations).
 
-Defaults chosen from measurement (see README, "Sensitivity"): states scaled to [0, 1] per
+Defaults chosen from measurement (docs/reproduction.md, "Sensitivity"): states scaled to [0, 1] per
 dimension, actions raw for discrete mountain car, bandwidth h = 0.015 (the narrow window
 in which HEDGER learns mountain car at all), k_thresh = h*sqrt(ln 100), k_min = d + 1, default
 ("don't know") value 0, IVH with an intercept column.
@@ -14,11 +14,12 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, Dict, Optional, Tuple
 
+import hedger_jax
 from hedger_jax.agent import RunConfig
 
 MODES = ("quick", "full")
 
-#: The paper's numbers (Smart & Kaelbling 2000, section 3) and SPEC.md references.
+#: The paper's numbers (Smart & Kaelbling 2000, section 3) and the reference lines.
 PAPER = {
     "tabular_q": 56.0,
     "tabular_q_paper_reward": 56.0,
@@ -34,7 +35,7 @@ PAPER = {
 
 MOUNTAIN_CAR = dict(bandwidth=0.015, alpha=0.8, gamma=0.8)
 #: Continuous actions: the action is scaled by 0.1 so the whole range [-1, 1] spans 0.2 in
-#: scaled units, i.e. ~6 neighbour radii (see README, "Sensitivity").
+#: scaled units, i.e. ~6 neighbour radii (docs/reproduction.md, "Sensitivity").
 MOUNTAIN_CAR_CONTINUOUS = dict(MOUNTAIN_CAR, action_scale=0.1)
 #: Corridor (see experiments/CORRIDOR_NOTES.md): h = 0.05, actions raw (rad/s), and the
 #: distance-to-end dimension weighted 10x less than the [0, 1] scaling (the value changes
@@ -43,6 +44,11 @@ CORRIDOR = dict(bandwidth=0.05, alpha=0.2, gamma=0.99, action_scale=1.0)
 CORRIDOR_SCALE_FACTORS = (1.0, 1.0, 0.1)
 #: Training runs start at the beginning of the evaluated section, as the robot's runs did.
 CORRIDOR_PARAMS = (("train_x_max", 0.5),)
+#: The adaptive kernel's lines (``hedger_jax.ADAPTIVE``): the same runs with each query's
+#: kernel width chosen from the data. Continuous actions are scaled from their bounds to
+#: [0, 1] like the states (no hand-picked factor); the corridor has no per-dimension weights.
+ADAPTIVE_PARAMS = dict(hedger_jax.ADAPTIVE)
+ADAPTIVE_CONTINUOUS_PARAMS = dict(ADAPTIVE_PARAMS, action_scale=0.5)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -145,6 +151,13 @@ def _ablation(name: str, title: str, mode: str, off_label: str, off: Dict[str, A
                   "training points", reference, optional=demos)
 
 
+def _paper_and_adaptive(make, mode: str, kind: str, continuous: bool) -> Tuple[Variant, ...]:
+    """The paper's line and the adaptive kernel's line of one setting (one program)."""
+    adaptive = ADAPTIVE_CONTINUOUS_PARAMS if continuous else ADAPTIVE_PARAMS
+    return (make(mode, f"{kind} (paper)", continuous),
+            make(mode, f"{kind} (adaptive)", continuous, adaptive))
+
+
 def build_figure(name: str, mode: str = "quick") -> Figure:
     """The figure ``name`` ("fig1" ... "fig5") in ``mode`` ("quick" or "full")."""
     if mode not in MODES:
@@ -152,15 +165,15 @@ def build_figure(name: str, mode: str = "quick") -> Figure:
     full = mode == "full"
     if name == "fig1":
         return Figure("fig1", "Figure 1: HEDGER from random starts (mountain car)",
-                      (_mc_random_starts(mode, "discrete", False),
-                       _mc_random_starts(mode, "continuous", True)),
+                      _paper_and_adaptive(_mc_random_starts, mode, "discrete", False)
+                      + _paper_and_adaptive(_mc_random_starts, mode, "continuous", True),
                       "training points",
                       (("tabular Q-learning", "tabular_q_paper_reward"), ("optimal (grid DP)", "optimal_dp"),
                        ("random policy", "random")),
                       paper=(("paper: HEDGER after ~300,000 points", "fig1_converged"),))
     if name == "fig2":
-        variants = [_mc_demos(mode, "discrete", False)]
-        continuous = (_mc_demos(mode, "continuous", True),)
+        variants = list(_paper_and_adaptive(_mc_demos, mode, "discrete", False))
+        continuous = _paper_and_adaptive(_mc_demos, mode, "continuous", True)
         if full:
             variants.extend(continuous)
         return Figure("fig2", "Figure 2: HEDGER with 11 demonstrations (mountain car)",
@@ -180,8 +193,8 @@ def build_figure(name: str, mode: str = "quick") -> Figure:
                          mode, "no region update", dict(region_update=False),
                          (("tabular Q-learning", "tabular_q_paper_reward"),))
     if name == "fig5":
-        variant = Variant(
-            label="HEDGER (corridor)",
+        paper = Variant(
+            label="HEDGER (paper)",
             env="corridor",
             hedger=_items(CORRIDOR, capacity=12_000),
             run=RunConfig(n_blocks=6, episodes_per_block=5, exploration="gaussian",
@@ -193,7 +206,10 @@ def build_figure(name: str, mode: str = "quick") -> Figure:
             state_scale_factors=CORRIDOR_SCALE_FACTORS,
             env_params=CORRIDOR_PARAMS,
         )
-        return Figure("fig5", "Figure 5: corridor following (simulated robot)", (variant,),
+        # The adaptive kernel with the observation scaled only from its bounds.
+        adaptive = dataclasses.replace(paper, label="HEDGER (adaptive)", state_scale_factors=None,
+                                       params=_items(ADAPTIVE_PARAMS))
+        return Figure("fig5", "Figure 5: corridor following (simulated robot)", (paper, adaptive),
                       "phase-two training runs",
                       (("hand-coded controller", "corridor_hand_coded"),
                        ("best achievable", "corridor_best")))

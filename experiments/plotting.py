@@ -49,3 +49,37 @@ def plot_figure(path: str, title: str, x_label: str, records: List[Dict],
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
+
+
+def plot_robustness(path: str, title: str, rows: List[Dict],
+                    reference: Optional[Dict[str, float]] = None) -> None:
+    """Steps after the last run against the initial bandwidth, one line per method (mean
+    over seeds, 95 % t-interval shaded), log x-axis. rows: ``bandwidth_study`` rows
+    (method, bandwidth, per_seed_final); reference: {label: steps} dashed lines."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=FIGSIZE, dpi=DPI)
+    for method in dict.fromkeys(r["method"] for r in rows):
+        mine = sorted((r for r in rows if r["method"] == method), key=lambda r: r["bandwidth"])
+        h = np.asarray([r["bandwidth"] for r in mine])
+        stats = np.asarray([mean_ci(np.asarray(r["per_seed_final"])) for r in mine])
+        n = len(mine[0]["per_seed_final"])
+        line, = ax.plot(h, stats[:, 0], marker="o", ms=4, label=f"{method} (n={n} seeds)")
+        ax.fill_between(h, stats[:, 0] - stats[:, 1], stats[:, 0] + stats[:, 1],
+                        color=line.get_color(), alpha=0.2)
+    for label, value in (reference or {}).items():
+        ax.axhline(value, color="grey", ls="--", lw=1, label=f"{label}: {value:.0f}")
+    ax.set_xscale("log")
+    ax.set_xlabel("initial bandwidth setting h (scaled units)")
+    ax.set_ylabel("mean steps to goal after the last run")
+    ax.set_title(title, fontsize=10)
+    ax.set_ylim(bottom=0)
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=7, loc="upper left", framealpha=0.9,
+              title="shaded: 95 % interval over seeds", title_fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)

@@ -2,7 +2,7 @@
 
 The paper (Smart & Kaelbling 2000, section 3.1) compares HEDGER with "standard tabular
 Q-learning on a finely discretised version of the problem, run until it converged" (56 steps);
-SPEC.md adds the optimal policy (~50 steps, grid dynamic programming) and the random policy
+The references add the optimal policy (~50 steps, grid dynamic programming) and the random policy
 (~163 steps). This module measures all three on *exactly* the evaluation protocol of
 ``hedger_jax.agent.evaluate``: greedy policy, learning off, ``n_episodes`` (2500) starts from
 ``env.evaluation_starts`` (uniform x in [-1.2, 0.5), v in [-0.07, 0.07]), cap 200 steps, metric

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import types
 from typing import Any, Optional, Tuple
 
 #: ``full_policy`` choices: drop and flag new points, or overwrite the oldest (ring buffer).
@@ -53,6 +54,13 @@ def reject_traced(owner: str, name: str, value: Any) -> None:
                     "it fixes shapes or loop lengths; sweep it with one program per value")
             raise StaticFieldError(f"{name}: {owner} fields are static and cannot be traced "
                                    f"or vmapped; {hint}")
+
+
+#: The adaptive kernel (beyond the paper): each query's kernel width set by its 8th nearest
+#: neighbour, within 8x either side of ``bandwidth``, fitting log-scale values. Use as
+#: ``HedgerConfig(..., **ADAPTIVE)`` or ``HedgerParams.create(config, **ADAPTIVE)``; see
+#: docs/adaptive-kernel.md for how it was chosen.
+ADAPTIVE = types.MappingProxyType({"kernel_k": 8, "kernel_range": 8.0, "value_eps": 1e-6})
 
 
 #: The ``HedgerConfig`` and ``RunConfig`` fields that ``HedgerParams`` carries as traced values.

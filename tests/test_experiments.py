@@ -241,14 +241,17 @@ def test_select_variants_optional_and_eval_episodes():
     from experiments.__main__ import select_variants
 
     fig = build_figure("fig2", "quick")
-    assert [v.label for v in fig.variants] == ["discrete"]
-    assert [v.label for v in fig.optional] == ["continuous"]
+    assert [v.label for v in fig.variants] == ["discrete (paper)", "discrete (adaptive)"]
+    assert [v.label for v in fig.optional] == ["continuous (paper)", "continuous (adaptive)"]
+    # The adaptive kernel is a traced setting: both lines are one program.
+    assert runner.static_part(fig.variants[0]) == runner.static_part(fig.variants[1])
+    assert dict(fig.variants[1].params)["kernel_k"] > 0
     # Default: the default variants only, unchanged.
     same = select_variants(fig)
     assert same.variants == fig.variants and same.optional == ()
     # --variant reaches the optional (slow) variant; --eval-episodes overrides the protocol.
     cont = select_variants(fig, ["continuous"], eval_episodes=7)
-    assert [v.label for v in cont.variants] == ["continuous"]
+    assert [v.label for v in cont.variants] == ["continuous (paper)", "continuous (adaptive)"]
     assert cont.variants[0].env == "mountain_car_continuous"
     assert cont.variants[0].run.eval_episodes == 7
     assert cont.variants[0].run.n_blocks == fig.optional[0].run.n_blocks
@@ -256,7 +259,9 @@ def test_select_variants_optional_and_eval_episodes():
         select_variants(fig, ["no such variant"])
     # --full runs the continuous variant by default.
     full = build_figure("fig2", "full")
-    assert [v.label for v in full.variants] == ["discrete", "continuous"] and full.optional == ()
+    assert [v.label for v in full.variants] == ["discrete (paper)", "discrete (adaptive)",
+                                                "continuous (paper)", "continuous (adaptive)"]
+    assert full.optional == ()
 
 
 def test_ablation_demo_variants_share_figure2_cache_key():
@@ -278,3 +283,32 @@ def test_ablation_demo_variants_share_figure2_cache_key():
     fig3 = select_variants(build_figure("fig3", "quick"), ["discrete + demos"])
     assert dict(fig3.variants[1].params)["use_ivh"] is False
 
+
+
+def test_group_config_covers_the_widest_selection_radius():
+    """A group with an adaptive-kernel line: the grid is sized for its selection radius
+    (kernel_range times the paper's), so its params pass the host check."""
+    fig = build_figure("fig2", "quick")
+    config = runner.group_config(list(fig.variants))
+    widest = max(runner.params_of(v, config).k_thresh for v in fig.variants)
+    assert config.max_k_thresh >= widest * (1 - 1e-6)
+    assert widest == pytest.approx(config.k_thresh * dict(fig.variants[1].params)["kernel_range"],
+                                   rel=1e-5)
+
+
+def test_bandwidth_study_methods_and_robustness_plot(tmp_path):
+    """Methods by name or as name:key=value lists; the robustness plot draws one line per
+    method with its 95 % band (a PNG of the size the figures use)."""
+    from experiments.bandwidth_study import METHODS, _parse_method
+    from experiments.plotting import plot_robustness
+
+    assert _parse_method("adaptive") == dict(METHODS["adaptive"])
+    assert _parse_method("x:kernel_k=8,kernel_range=8.0,value_eps=1e-6") == \
+        {"kernel_k": 8, "kernel_range": 8.0, "value_eps": 1e-6}
+    rows = [{"method": m, "bandwidth": h, "per_seed_final": [60.0 + i, 62.0, 64.0 + h]}
+            for m in ("paper", "adaptive") for i, h in enumerate((0.01, 0.05, 0.1))]
+    path = tmp_path / "robustness.png"
+    plot_robustness(str(path), "t", rows, {"paper": 56})
+    import matplotlib.image
+
+    assert matplotlib.image.imread(str(path)).shape[:2] == (1350, 2100)
