@@ -55,6 +55,11 @@ METHODS = ("hedger", "hedger-demos", "hedger-continuous", "dqn", "ppo", "sac")
 DEFAULT_METHODS = ("hedger", "hedger-demos", "dqn", "sac", "ppo")
 PROTOCOLS = ("gymnasium", "random")
 SB3_METHODS = ("dqn", "ppo", "sac")
+#: Names in the plot's legends.
+LABELS = {"hedger": "HEDGER", "hedger-demos": "HEDGER + 11 demonstrations",
+          "hedger-continuous": "HEDGER continuous + 11 demonstrations",
+          "dqn": "SB3 DQN (Zoo)", "ppo": "SB3 PPO (Zoo)",
+          "sac": "SB3 SAC (Zoo; MountainCarContinuous-v0)"}
 
 #: Start ranges: (x_low, x_high, v_low, v_high); x_high (and v_high) exclusive.
 STARTS = {"gymnasium": (-0.6, -0.4, 0.0, 0.0), "random": (-1.2, 0.5, -0.07, 0.07)}
@@ -473,7 +478,7 @@ def summarize(recs: List[Dict[str, Any]]) -> Dict[str, Any]:
 
 def table(rows: Dict[str, Dict[str, Any]], protocol: str) -> str:
     """The Markdown table of one protocol."""
-    lines = ["| method | env steps (budget) | env steps to ≤ 110 (mean ± 95 % CI; seeds reached) "
+    lines = ["| method | env steps run (mean) | env steps to ≤ 110 (mean ± 95 % CI; seeds reached) "
              "| final steps-to-goal (mean ± 95 % CI) | wall-clock s per run (mean ± 95 % CI) |",
              "|---|---|---|---|---|"]
     for method, row in rows.get(protocol, {}).items():
@@ -486,9 +491,11 @@ def table(rows: Dict[str, Dict[str, Any]], protocol: str) -> str:
     return "\n".join(lines)
 
 
-def plot(rows: Dict[str, Dict[str, Any]], path: str) -> None:
+def plot(rows: Dict[str, Dict[str, Any]], path: str,
+         references: Optional[Dict[str, Dict[str, float]]] = None) -> None:
     """Steps-to-goal against env steps (log x), mean over seeds with 95 % bands, one line
-    per method, one panel per protocol, a dashed line at ``TARGET``."""
+    per method, one panel per protocol, a dashed line at ``TARGET``; the energy-pumping
+    policy's level (``references``) as a grey dotted line."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -498,7 +505,7 @@ def plot(rows: Dict[str, Dict[str, Any]], path: str) -> None:
     from experiments.plotting import DPI
 
     protocols = [p for p in PROTOCOLS if p in rows]
-    fig, axes = plt.subplots(1, len(protocols), figsize=(11.0, 4.5), dpi=DPI, sharey=True,
+    fig, axes = plt.subplots(1, len(protocols), figsize=(11.0, 5.8), dpi=DPI, sharey=True,
                              squeeze=False)
     colours = dict(zip(METHODS, plt.rcParams["axes.prop_cycle"].by_key()["color"]))
     titles = {"gymnasium": "Gymnasium starts: x ~ U[-0.6, -0.4], v = 0",
@@ -511,44 +518,68 @@ def plot(rows: Dict[str, Dict[str, Any]], path: str) -> None:
             mean, half = mean_ci(np.array([s["mean_steps"][:n_points] for s in seeds]))
             keep = x > 0                     # the log axis has no 0 (HEDGER's start)
             line, = ax.plot(x[keep], mean[keep], marker="o", ms=2.5, color=colours[method],
-                            label=f"{method} (n={row['n']})")
+                            label=f"{LABELS[method]} (n={row['n']})")
             ax.fill_between(x[keep], (mean - half)[keep], (mean + half)[keep],
                             color=line.get_color(), alpha=0.2)
         ax.axhline(TARGET, color="black", ls="--", lw=1, label=f"{TARGET:g} steps")
+        pump = (references or {}).get(protocol, {}).get("energy pumping")
+        if pump is not None:
+            ax.axhline(pump, color="grey", ls=":", lw=1.2,
+                       label=f"push with velocity (hand policy): {pump:.0f}")
         ax.set_xscale("log")
         ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         ax.set_xlabel("environment steps (HEDGER: demonstration steps included)")
         ax.set_title(titles[protocol], fontsize=9)
         ax.set_ylim(0, CAP + 5)
         ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2,
+                  framealpha=0.9, title="shaded: 95 % interval over seeds", title_fontsize=7)
     axes[0][0].set_ylabel(f"steps to goal (greedy, failures = {CAP})")
-    handles, labels = axes[0][-1].get_legend_handles_labels()
-    axes[0][-1].legend(handles, labels, fontsize=7, loc="lower left", framealpha=0.9,
-                       title="shaded: 95 % interval over seeds", title_fontsize=7)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
 
 
+def reference_policies(protocol: str, n_episodes: int = FINAL_EPISODES) -> Dict[str, float]:
+    """Mean steps to the goal of two hand policies on the final evaluation's episodes:
+    pushing in the direction of the velocity (energy pumping; on MountainCar-v0 and on
+    MountainCarContinuous-v0 with actions +-1) and uniformly random actions (MountainCar-v0,
+    a generator seeded 0)."""
+    rng = np.random.default_rng(0)
+    return {
+        "energy pumping": float(evaluate_steps(
+            lambda o: np.where(o[:, 1] >= 0, 2, 0), protocol, n_episodes).mean()),
+        "energy pumping, MountainCarContinuous-v0": float(evaluate_steps(
+            lambda o: np.where(o[:, 1] >= 0, 1.0, -1.0)[:, None], protocol, n_episodes,
+            continuous=True).mean()),
+        "random actions": float(evaluate_steps(
+            lambda o: rng.integers(0, 3, len(o)), protocol, n_episodes).mean()),
+    }
+
+
 def report(out: str, docs: str) -> Dict[str, Any]:
-    """Write ``docs/deep_rl.json`` (per-seed numbers), ``deep_rl.png`` and
-    ``deep_rl_tables.md`` from the result files in ``out``; print the tables."""
+    """Write ``DOCS/deep_rl.json`` (per-seed numbers) and ``DOCS/deep_rl.png`` from the
+    result files in ``out``, and the tables to ``out/deep_rl_tables.md``; print the tables."""
     recs = load_results(out)
     rows = summarize(recs)
     os.makedirs(docs, exist_ok=True)
     runs = {f"{r['method']}/{r['protocol']}/{r['seed']}": r for r in recs}
-    blob = {"rows": rows, "runs": runs, "target": TARGET, "cap": CAP,
+    references = {p: reference_policies(p) for p in rows}
+    blob = {"rows": rows, "runs": runs, "references": references, "target": TARGET, "cap": CAP,
             "eval_episodes": EVAL_EPISODES, "final_episodes": FINAL_EPISODES,
             "eval_seed": EVAL_SEED, "zoo": {k: {kk: str(vv) if isinstance(vv, dict) else vv
                                                  for kk, vv in v.items()}
                                              for k, v in ZOO.items()}}
     _atomic_json(os.path.join(docs, "deep_rl.json"), blob)
-    text = "\n\n".join(f"### {p}\n\n{table(rows, p)}" for p in PROTOCOLS if p in rows)
-    with open(os.path.join(docs, "deep_rl_tables.md"), "w") as f:
+    text = "\n\n".join(
+        f"### {p}\n\n{table(rows, p)}\n\nreferences (same {FINAL_EPISODES} episodes): "
+        + ", ".join(f"{k} {v:.1f}" for k, v in references[p].items())
+        for p in PROTOCOLS if p in rows)
+    with open(os.path.join(out, "deep_rl_tables.md"), "w") as f:
         f.write(text + "\n")
     print(text)
     if rows:
-        plot(rows, os.path.join(docs, "deep_rl.png"))
+        plot(rows, os.path.join(docs, "deep_rl.png"), references)
     return rows
 
 
@@ -574,8 +605,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--out", default=os.path.join("results", "deep_rl"),
                    help="directory of the per-run JSON files (default: results/deep_rl)")
     p.add_argument("--docs", default=None,
-                   help="where deep_rl.json, deep_rl.png and deep_rl_tables.md go "
-                        "(default: the --out directory)")
+                   help="where deep_rl.json and deep_rl.png go (default: the --out "
+                        "directory; the tables go to OUT/deep_rl_tables.md)")
     p.add_argument("--steps", nargs="*", default=[], metavar="METHOD=N",
                    help="SB3 budgets in env steps (default: "
                         + " ".join(f"{k}={v}" for k, v in BUDGET.items()) + ")")
