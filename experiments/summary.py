@@ -127,7 +127,7 @@ def _claims(data: Dict) -> List[str]:
             p = welch_p(first, _hand_coded_samples(len(first)))
             lines.append(f"- {rec['label']}: after phase 1 {_fmt(*mean_ci(first))} vs "
                          f"hand-coded {hand:.1f}: "
-                         f"{'significantly better' if p < 0.05 and first.mean() < hand else 'NOT significantly better'}"
+                         f"{'NOT significantly better' if p >= 0.05 else 'significantly better' if first.mean() < hand else 'significantly worse'}"
                          f" (Welch p = {p:.3g}).")
         if best is not None:
             m1, h1 = mean_ci(last)
