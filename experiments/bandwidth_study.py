@@ -19,10 +19,12 @@ import sys
 import time
 from typing import Any, Dict, List
 
+from hedger_jax.config import ADAPTIVE
+
 #: Named methods: ``HedgerParams`` settings on top of the initial bandwidth.
 METHODS: Dict[str, Dict[str, Any]] = {
     "paper": {},
-    "adaptive": dict(kernel_k=8, kernel_range=8.0, value_eps=1e-6),
+    "adaptive": dict(ADAPTIVE),
 }
 
 
