@@ -19,7 +19,7 @@ per-program XLA options; ``hedger_jax.cpu.configure()`` tunes the whole process 
 """
 from hedger_jax import cpu
 from hedger_jax.cpu import jit
-from hedger_jax.config import ADAPTIVE, HedgerConfig, StaticFieldError
+from hedger_jax.config import ADAPTIVE, ADAPTIVE_CONTINUOUS, HedgerConfig, StaticFieldError
 from hedger_jax.params import HedgerParams, InvalidParamsError, check_params
 from hedger_jax.greedy import greedy_action, greedy_value, maximise_1d
 from hedger_jax.memory import (FLAG_FULL, FLAG_NONFINITE, Memory, MemoryFullError,
@@ -36,7 +36,7 @@ from hedger_jax.validation import InvalidInputError
 __version__ = "0.2.0"
 
 __all__ = [
-    "ADAPTIVE", "HedgerConfig", "HedgerParams", "InvalidParamsError", "StaticFieldError", "check_params",
+    "ADAPTIVE", "ADAPTIVE_CONTINUOUS", "HedgerConfig", "HedgerParams", "InvalidParamsError", "StaticFieldError", "check_params",
     "Memory", "MemoryFullError", "NonFiniteValueError", "FLAG_FULL",
     "FLAG_NONFINITE", "init_memory", "add_points", "memory_check", "select_neighbours",
     "stored_points", "Prediction", "predict", "predict_detailed", "greedy_action",

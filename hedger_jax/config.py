@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import types
+import warnings
 from typing import Any, Optional, Tuple
 
 #: ``full_policy`` choices: drop and flag new points, or overwrite the oldest (ring buffer).
@@ -61,6 +62,21 @@ def reject_traced(owner: str, name: str, value: Any) -> None:
 #: ``HedgerConfig(..., **ADAPTIVE)`` or ``HedgerParams.create(config, **ADAPTIVE)``; see
 #: docs/adaptive-kernel.md for how it was chosen.
 ADAPTIVE = types.MappingProxyType({"kernel_k": 8, "kernel_range": 8.0, "value_eps": 1e-6})
+#: For continuous actions: log-scale values only. The data-chosen width is left out: with a
+#: continuous greedy search it was measured to collapse the policy. Scale the action from
+#: its bounds (``HedgerConfig.for_env(..., action_scale="bounds")``); see
+#: docs/adaptive-kernel.md.
+ADAPTIVE_CONTINUOUS = types.MappingProxyType({"value_eps": 1e-6})
+
+
+def warn_data_chosen_width_with_continuous_actions(config: "HedgerConfig") -> None:
+    """A ``UserWarning`` for a data-chosen kernel width (``kernel_k`` > 0) with continuous
+    actions, where it was measured to make the greedy policy collapse."""
+    warnings.warn(
+        "kernel_k > 0 (a data-chosen kernel width) with continuous actions: measured to make "
+        "the greedy policy collapse to random-policy level on mountain car and the corridor "
+        "(docs/adaptive-kernel.md); for continuous actions use value_eps alone and scale the "
+        "action from its bounds", UserWarning, stacklevel=3)
 
 
 #: The ``HedgerConfig`` and ``RunConfig`` fields that ``HedgerParams`` carries as traced values.
@@ -230,6 +246,8 @@ class HedgerConfig:
                 or self.kernel_k < 0:
             raise ValueError(f"kernel_k: must be an integer >= 0, got {self.kernel_k!r}")
         set_("kernel_k", int(self.kernel_k))
+        if self.kernel_k > 0 and self.discrete_actions is None:
+            warn_data_chosen_width_with_continuous_actions(self)
         if not (math.isfinite(self.kernel_range) and self.kernel_range >= 1.0):
             raise ValueError(f"kernel_range: must be a finite number >= 1, got "
                              f"{self.kernel_range}")
@@ -393,13 +411,15 @@ class HedgerConfig:
         return dataclasses.replace(self, **changes)
 
     @classmethod
-    def for_env(cls, env: Any, params: Any = None, *, action_scale: float = 1.0,
+    def for_env(cls, env: Any, params: Any = None, *, action_scale: Any = 1.0,
                 **overrides: Any) -> "HedgerConfig":
         """A config for a functional environment (see ``envs.base``).
 
         Observations are scaled to [0, 1] by ``env.obs_bounds(params)``; actions are
-        multiplied by ``action_scale`` (raw by default, as in the paper's discrete set
-        {-1, 0, 1}). The action space (discrete set or box) comes from ``env.action_space``.
+        multiplied by ``action_scale``: a number or one per action dimension (raw by default,
+        as in the paper's discrete set {-1, 0, 1}), or ``"bounds"`` for 1 / (high - low) of
+        the action space, so that the action range spans 1 like the states'. The action
+        space (discrete set or box) comes from ``env.action_space``.
         """
         import numpy as np
 
@@ -408,6 +428,15 @@ class HedgerConfig:
         low, high = (np.asarray(b, dtype=np.float64) for b in env.obs_bounds(params))
         space = env.action_space
         a_dim = space.action_dim
+        if isinstance(action_scale, str):
+            if action_scale != "bounds":
+                raise ValueError(f"action_scale: a number, one per action dimension, or "
+                                 f"'bounds', got {action_scale!r}")
+            span = np.asarray(space.high, np.float64) - np.asarray(space.low, np.float64)
+            if not np.all(np.isfinite(span) & (span > 0)):
+                raise ValueError(f"action_scale='bounds': the action bounds must be finite "
+                                 f"with high > low, got low={space.low}, high={space.high}")
+            action_scale = 1.0 / span
         a_scale = np.broadcast_to(np.asarray(action_scale, dtype=np.float64), (a_dim,))
         kwargs = dict(
             state_dim=int(low.shape[0]),

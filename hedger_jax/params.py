@@ -17,7 +17,8 @@ from typing import Any, NamedTuple, Optional
 
 import numpy as np
 
-from hedger_jax.config import HedgerConfig, StaticFieldError, selection_radius
+from hedger_jax.config import (HedgerConfig, StaticFieldError, selection_radius,
+                               warn_data_chosen_width_with_continuous_actions)
 
 #: Fields of ``HedgerParams``, in order.
 FIELDS = ("bandwidth", "min_weight", "kernel_k", "kernel_range", "region_scale", "value_eps",
@@ -106,6 +107,8 @@ class HedgerParams(NamedTuple):
                                                 base["kernel_k"], base["kernel_range"])
         params = _as_arrays(config, base)
         check_params(config, params)
+        if "kernel_k" in values and not config.is_discrete and np.any(params.kernel_k > 0):
+            warn_data_chosen_width_with_continuous_actions(config)
         return params
 
     def replace(self, **values: Any) -> "HedgerParams":

@@ -165,3 +165,36 @@ def test_for_env_scales_obs_to_unit_box_and_actions_by_action_scale(discrete):
     pts = np.asarray(mem.points)[:, :3].T
     np.testing.assert_allclose(pts[:, :2], [[0, 0], [1, 1], [0.5, 0.5]], atol=1e-5)
     np.testing.assert_allclose(pts[:, 2], [0.5, -0.5, 0.0], atol=1e-6)
+
+
+def test_for_env_action_scale_bounds_spans_the_action_range_like_the_states():
+    box = _FakeEnv([-1.2, -0.07], [0.5, 0.07], ActionSpace.box([-2.0], [0.5]))
+    cfg = HedgerConfig.for_env(box, action_scale="bounds", capacity=8)
+    np.testing.assert_allclose(cfg.input_scale[2:], [1 / 2.5])
+    np.testing.assert_allclose(cfg.input_scale[:2], [1 / 1.7, 1 / 0.14])
+    discrete = _FakeEnv([-1.2, -0.07], [0.5, 0.07], ActionSpace.discrete([-1.0, 0.0, 1.0]))
+    assert HedgerConfig.for_env(discrete, action_scale="bounds", capacity=8).input_scale[2] \
+        == pytest.approx(0.5)
+    with pytest.raises(ValueError, match="action_scale"):
+        HedgerConfig.for_env(box, action_scale="bound", capacity=8)
+
+
+def test_a_data_chosen_width_with_continuous_actions_warns(recwarn):
+    import warnings
+
+    from hedger_jax import ADAPTIVE, ADAPTIVE_CONTINUOUS, HedgerParams
+
+    box = _FakeEnv([-1.2, -0.07], [0.5, 0.07], ActionSpace.box([-1.0], [1.0]))
+    discrete = _FakeEnv([-1.2, -0.07], [0.5, 0.07], ActionSpace.discrete([-1.0, 0.0, 1.0]))
+    with pytest.warns(UserWarning, match="continuous actions"):
+        HedgerConfig.for_env(box, capacity=8, **ADAPTIVE)
+    cfg = HedgerConfig.for_env(box, capacity=8, max_bandwidth=1.0)
+    with pytest.warns(UserWarning, match="continuous actions"):
+        HedgerParams.create(cfg, kernel_k=[0, 8])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        HedgerConfig.for_env(discrete, capacity=8, **ADAPTIVE)
+        HedgerConfig.for_env(box, capacity=8, **ADAPTIVE_CONTINUOUS)
+        HedgerParams.create(cfg, **ADAPTIVE_CONTINUOUS)
+        HedgerParams.create(cfg, kernel_k=0)
+    assert "kernel_k" not in ADAPTIVE_CONTINUOUS and ADAPTIVE_CONTINUOUS["value_eps"] > 0
