@@ -387,12 +387,14 @@ def bench_train(settings, rng, results, quick):
             baseline_agent(mc_config(cap, "brute", continuous), z.astype(np.float64),
                            v.astype(np.float64)),
             continuous, min_cpu=0.5 if quick else 2.0, min_episodes=1 if quick else 2)
-        # "adaptive": the grid with the data-chosen kernel width (hedger_jax.ADAPTIVE), at
-        # 2e4 slots only (its 8x selection radius makes the larger rows take many minutes).
+        # "adaptive": the grid with the beyond-the-paper option, at 2e4 slots only: discrete
+        # hedger_jax.ADAPTIVE (its 8x selection radius makes the larger rows take many
+        # minutes), continuous hedger_jax.ADAPTIVE_CONTINUOUS (log values only).
+        adaptive = hedger_jax.ADAPTIVE_CONTINUOUS if continuous else hedger_jax.ADAPTIVE
         for kind in ("brute", "grid", "adaptive"):
             if (kind == "brute" and cap > 100_000) or (kind == "adaptive" and cap > 20_000):
                 continue
-            cfg = mc_config(cap, "grid", continuous, **hedger_jax.ADAPTIVE) \
+            cfg = mc_config(cap, "grid", continuous, **adaptive) \
                 if kind == "adaptive" else mc_config(cap, kind, continuous)
             n_eps = episodes_per_call(cfg, 2 if quick else 4)
             row[f"{kind}_episodes_per_call"] = n_eps

@@ -19,12 +19,15 @@ import sys
 import time
 from typing import Any, Dict, List
 
-from hedger_jax.config import ADAPTIVE
+from hedger_jax.config import ADAPTIVE, ADAPTIVE_CONTINUOUS
 
-#: Named methods: ``HedgerParams`` settings on top of the initial bandwidth.
+#: Named methods: ``HedgerParams`` settings on top of the initial bandwidth
+#: (``action_scale``: the continuous action's factor, 0.5 = from its bounds [-1, 1]).
 METHODS: Dict[str, Dict[str, Any]] = {
     "paper": {},
     "adaptive": dict(ADAPTIVE),
+    "paper-bounds": {"action_scale": 0.5},
+    "adaptive-continuous": dict(ADAPTIVE_CONTINUOUS, action_scale=0.5),
 }
 
 
@@ -122,7 +125,8 @@ def main(argv=None) -> int:
     p.add_argument("--bandwidths", nargs="+", type=float, default=[0.01, 0.02, 0.05, 0.1],
                    help="initial bandwidths (default: 0.01 0.02 0.05 0.1)")
     p.add_argument("--methods", nargs="+", default=["paper", "adaptive"],
-                   help="methods: names (paper, adaptive) or name:key=value,... of "
+                   help="methods: names (paper, adaptive, paper-bounds, adaptive-continuous) "
+                        "or name:key=value,... of "
                         "HedgerParams fields (default: paper adaptive)")
     p.add_argument("--seeds", type=int, default=5, help="seeds (default: 5)")
     p.add_argument("--continuous", action="store_true", help="continuous actions")

@@ -312,3 +312,25 @@ def test_bandwidth_study_methods_and_robustness_plot(tmp_path):
     import matplotlib.image
 
     assert matplotlib.image.imread(str(path)).shape[:2] == (1350, 2100)
+
+
+def test_adaptive_lines_use_the_data_chosen_width_only_with_discrete_actions():
+    import hedger_jax
+
+    fig2 = build_figure("fig2", "quick")
+    discrete = dict(fig2.variants[1].params)
+    assert discrete == dict(hedger_jax.ADAPTIVE)
+    continuous = dict(fig2.optional[1].params)
+    assert continuous == dict(hedger_jax.ADAPTIVE_CONTINUOUS, action_scale=0.5)
+    corridor = build_figure("fig5", "quick").variants[1]
+    assert dict(corridor.params) == dict(hedger_jax.ADAPTIVE_CONTINUOUS)
+    assert corridor.state_scale_factors is None
+    # A whole figure of adaptive lines builds without the continuous-actions warning.
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for name in ("fig1", "fig2", "fig5"):
+            fig = build_figure(name, "quick")
+            for v in fig.variants + fig.optional:
+                runner.params_of(v, runner.group_config([v]))
