@@ -109,7 +109,8 @@ def test_explore_action_greedy_only_is_the_greedy_action(continuous, exploration
     assert not np.array_equal(np.asarray(explored), np.asarray(want))   # epsilon 0.9
 
 
-@pytest.mark.parametrize("continuous", [False, True])
+# Continuous (~40 s) only in the full suite: the discrete case checks the same loop.
+@pytest.mark.parametrize("continuous", [False, pytest.param(True, marks=pytest.mark.full)])
 def test_block_evaluations_are_evaluate_episode_for_episode(continuous):
     """``make_train``'s blocks run their evaluation episodes through the training rollout
     (greedy): the results are ``evaluate``'s on the same memory and key, bit for bit -- for

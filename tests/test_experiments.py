@@ -175,6 +175,7 @@ print("OK")
 """
 
 
+@pytest.mark.full   # ~40 s; tests/test_sharding.py covers the split over two devices
 def test_seed_batches_split_over_two_forced_cpu_devices(tmp_path):
     """devices=2 (map): each device runs its share of a batch padded to a multiple of the
     device count; resumed from a checkpoint, the numbers equal one device's bit for bit."""
