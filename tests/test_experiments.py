@@ -115,6 +115,7 @@ def test_run_variant_resumes_after_interruption(tmp_path):
     assert not [p for p in os.listdir(os.path.join(out, "cache")) if p.startswith("ckpt-")]
 
 
+@pytest.mark.full   # ~30 s; map mode runs in the other experiment tests (auto on CPU)
 def test_seed_mode_map_runs_each_seed_alone(tmp_path):
     """seed_mode="map": the batch's seeds one after another in one program. Each seed runs the
     one-seed program, so its numbers do not depend on the batch it ran in (batches of 2 and of

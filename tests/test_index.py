@@ -323,6 +323,7 @@ def test_candidate_columns_near_the_largest_capacity():
     assert HedgerConfig(**big).index_kind == "brute"           # "auto" falls back
 
 
+@pytest.mark.full   # ~15 s; the other grid-against-brute tests cover the small batches
 def test_big_and_small_query_batches_match_brute_and_each_other():
     """A vmapped batch of 128 queries and the same queries in batches of 4 (``lax.map``)
     over a three-level grid: both equal brute force, and bit for bit each other."""
