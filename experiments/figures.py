@@ -44,12 +44,11 @@ CORRIDOR = dict(bandwidth=0.05, alpha=0.2, gamma=0.99, action_scale=1.0)
 CORRIDOR_SCALE_FACTORS = (1.0, 1.0, 0.1)
 #: Training runs start at the beginning of the evaluated section, as the robot's runs did.
 CORRIDOR_PARAMS = (("train_x_max", 0.5),)
-#: The adaptive lines (beyond the paper). Discrete actions: ``hedger_jax.ADAPTIVE``, each
-#: query's kernel width chosen from the data, fitting log-scale values. Continuous actions
-#: (mountain car and the corridor): ``hedger_jax.ADAPTIVE_CONTINUOUS``, log-scale values
-#: only (the data-chosen width collapses there: docs/adaptive-kernel.md), with the action
-#: scaled from its bounds like the states ([-1, 1] -> x0.5: no hand-picked factor); the
-#: corridor's observation is scaled only from its bounds (no per-dimension weights).
+#: The adaptive lines (beyond the paper): ``hedger_jax.ADAPTIVE``, one kernel width read
+#: from the stored data, fitting log-scale values. Continuous actions (mountain car and the
+#: corridor): the same settings (``ADAPTIVE_CONTINUOUS``), with the action scaled from its
+#: bounds like the states ([-1, 1] -> x0.5: no hand-picked factor); the corridor's
+#: observation is scaled only from its bounds (no per-dimension weights).
 ADAPTIVE_PARAMS = dict(hedger_jax.ADAPTIVE)
 ADAPTIVE_CONTINUOUS_PARAMS = dict(hedger_jax.ADAPTIVE_CONTINUOUS, action_scale=0.5)
 

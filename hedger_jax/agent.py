@@ -34,6 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from hedger_jax.config import HedgerConfig, reject_traced
+from hedger_jax.data_bandwidth import with_data_bandwidth
 from hedger_jax.greedy import (greedy_action, greedy_action_from_uniform, greedy_candidates,
                                greedy_choice, greedy_draws)
 from hedger_jax.loops import masked_fori_loop
@@ -249,6 +250,7 @@ def training_act(config: HedgerConfig, run: RunConfig, memory: Memory, greedy_on
     not carrying, the memory), with the greedy searches' neighbour sets recorded for
     ``train_prefix`` when neighbours are reused (``run.reuse_neighbours``, and only under
     ``full_policy="error"``). params: ``HedgerParams``, or None for the configs' values."""
+    params = with_data_bandwidth(config, memory, params)     # once per rollout
     reuse = run.reuse_neighbours
     if reuse is None:
         reuse = config.capacity >= REUSE_MIN_CAPACITY
@@ -348,6 +350,7 @@ def train_prefix(config: HedgerConfig, memory: Memory, episode: Transition, leng
     (``hedger_jax.replay_cache``; the same sets). params: ``HedgerParams``, or None for the
     config's values. Returns the memory.
     """
+    params = with_data_bandwidth(config, memory, params)     # the rollout's width
     width = int(episode.valid.shape[0])
 
     def body(i, mem, active):
@@ -453,6 +456,7 @@ def evaluate(env: Any, env_params: Any, config: HedgerConfig, memory: Memory, ke
     """
     if refresh:
         memory = refresh_index(config, memory)
+    params = with_data_bandwidth(config, memory, params)     # once, not per step
 
     def act(obs, k):
         return greedy_action(config, memory, obs, k, params)[0]
@@ -588,14 +592,16 @@ def make_train(env: Any, config: HedgerConfig, run: RunConfig, *, env_params: An
             s0 = jax.tree_util.tree_map(lambda a, b: jnp.where(train_now, a, b[e]), s0,
                                         eval_states0)
 
-            act = training_act(config, run, memory, ~train_now, params)
+            # The data-chosen bandwidth (if any) read once, for the rollout and its replay.
+            p_ep = with_data_bandwidth(config, memory, params)
+            act = training_act(config, run, memory, ~train_now, p_ep)
             ep, length, success, record = _rollout(
                 env, env_params, act, jnp.where(train_now, k_run, eval_keys[e]), max_steps,
                 obs0, s0, limit=jnp.where(train_now, max_steps, run.eval_max_steps))
             memory = jax.lax.cond(
                 train_now,
                 lambda m: refresh_index(config, train_prefix(config, m, ep, length, record,
-                                                             params)),
+                                                             p_ep)),
                 lambda m: m, memory)
             learnt = jnp.where(train_now, length, 0)
             at = jnp.where(train_now, n_eval, j)                     # n_eval: not recorded

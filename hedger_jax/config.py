@@ -57,44 +57,48 @@ def reject_traced(owner: str, name: str, value: Any) -> None:
                                    f"or vmapped; {hint}")
 
 
-#: The adaptive kernel (beyond the paper): each query's kernel width set by its 8th nearest
-#: neighbour, within 8x either side of ``bandwidth``, fitting log-scale values. Use as
+#: The adaptive kernel (beyond the paper): one kernel width read from the stored data once
+#: per episode (the median width that gives a stored point's 24th nearest stored point the
+#: weight ``min_weight``, at most 8x ``bandwidth``), fitting log-scale values. Use as
 #: ``HedgerConfig(..., **ADAPTIVE)`` or ``HedgerParams.create(config, **ADAPTIVE)``; see
 #: docs/adaptive-kernel.md for how it was chosen.
-ADAPTIVE = types.MappingProxyType({"kernel_k": 8, "kernel_range": 8.0, "value_eps": 1e-6})
-#: For continuous actions: log-scale values only. The data-chosen width is left out: with a
-#: continuous greedy search it was measured to collapse the policy. Scale the action from
-#: its bounds (``HedgerConfig.for_env(..., action_scale="bounds")``); see
-#: docs/adaptive-kernel.md.
-ADAPTIVE_CONTINUOUS = types.MappingProxyType({"value_eps": 1e-6})
+ADAPTIVE = types.MappingProxyType({"bandwidth_k": 24, "kernel_range": 8.0, "value_eps": 1e-6})
+#: For continuous actions: the same settings (the per-query width of ``kernel_k`` collapses
+#: there; the width read from the memory does not). Scale the action from its bounds
+#: (``HedgerConfig.for_env(..., action_scale="bounds")``); see docs/adaptive-kernel.md.
+ADAPTIVE_CONTINUOUS = ADAPTIVE
 
 
 def warn_data_chosen_width_with_continuous_actions(config: "HedgerConfig") -> None:
     """A ``UserWarning`` for a data-chosen kernel width (``kernel_k`` > 0) with continuous
     actions, where it was measured to make the greedy policy collapse."""
     warnings.warn(
-        "kernel_k > 0 (a data-chosen kernel width) with continuous actions: measured to make "
+        "kernel_k > 0 (a per-query kernel width) with continuous actions: measured to make "
         "the greedy policy collapse to random-policy level on mountain car and the corridor "
-        "(docs/adaptive-kernel.md); for continuous actions use value_eps alone and scale the "
-        "action from its bounds", UserWarning, stacklevel=3)
+        "(docs/adaptive-kernel.md); for continuous actions use one width for the memory "
+        "(bandwidth_k, hedger_jax.ADAPTIVE_CONTINUOUS) and scale the action from its bounds",
+        UserWarning, stacklevel=3)
 
 
 #: The ``HedgerConfig`` and ``RunConfig`` fields that ``HedgerParams`` carries as traced values.
-_TRACED_FIELDS = ("bandwidth", "min_weight", "kernel_k", "kernel_range", "region_scale",
+_TRACED_FIELDS = ("bandwidth", "min_weight", "kernel_k", "kernel_range", "bandwidth_k",
+                  "region_scale",
                   "value_eps",
                   "k_thresh", "k_min", "alpha", "gamma",
                   "default_value", "ridge", "ivh_tol", "input_offset", "input_scale", "use_ivh",
                   "region_update", "epsilon", "noise_std")
 
 
-def selection_radius(bandwidth, min_weight, kernel_k=0, kernel_range=1.0):
+def selection_radius(bandwidth, min_weight, kernel_k=0, kernel_range=1.0, bandwidth_k=0):
     """The default k_thresh: where the widest kernel's weight falls to ``min_weight``,
     bandwidth sqrt(ln(1 / min_weight)), times ``kernel_range`` with a data-chosen width
-    (``kernel_k`` > 0). NumPy in, NumPy out (Python floats for Python floats)."""
+    (``kernel_k`` or ``bandwidth_k`` > 0). NumPy in, NumPy out (Python floats for Python
+    floats)."""
     import numpy as np
 
-    h = np.asarray(bandwidth, np.float64) * np.where(np.asarray(kernel_k) > 0,
-                                                       np.asarray(kernel_range, np.float64), 1.0)
+    h = np.asarray(bandwidth, np.float64) * np.where(
+        (np.asarray(kernel_k) > 0) | (np.asarray(bandwidth_k) > 0),
+        np.asarray(kernel_range, np.float64), 1.0)
     with np.errstate(divide="ignore", invalid="ignore"):
         out = h * np.sqrt(np.log(1.0 / np.asarray(min_weight, np.float64)))
     return float(out) if np.ndim(out) == 0 else out
@@ -135,7 +139,10 @@ class HedgerConfig:
     = m > 0 each query's kernel width is the one that gives its m-th nearest neighbour the
     weight ``min_weight``, kept within [bandwidth / kernel_range, bandwidth * kernel_range];
     neighbours are then searched within the widest kernel's radius (the default k_thresh is
-    ``kernel_range`` times the paper's).
+    ``kernel_range`` times the paper's). With ``bandwidth_k`` = m > 0 instead, one width for
+    the whole memory: the median over stored points of the width giving their m-th nearest
+    stored point ``min_weight``, at most bandwidth * kernel_range, read once per episode
+    (``hedger_jax.data_bandwidth``); at most one of the two is > 0.
 
     Training: ``alpha``/``gamma`` of Q-learning; ``region_update`` moves every neighbour
     towards the new value by its kernel weight (Algorithm 2 lines 7-8), scaled by
@@ -186,6 +193,7 @@ class HedgerConfig:
     min_weight: float = 0.01
     kernel_k: int = 0
     kernel_range: float = 4.0
+    bandwidth_k: int = 0
     region_scale: float = 1.0
     value_eps: float = 0.0
     k_min: Optional[int] = None
@@ -252,6 +260,14 @@ class HedgerConfig:
             raise ValueError(f"kernel_range: must be a finite number >= 1, got "
                              f"{self.kernel_range}")
         set_("kernel_range", float(self.kernel_range))
+        if isinstance(self.bandwidth_k, bool) or int(self.bandwidth_k) != self.bandwidth_k \
+                or not 0 <= self.bandwidth_k <= self.max_neighbours:
+            raise ValueError(f"bandwidth_k: must be an integer in [0, max_neighbours = "
+                             f"{self.max_neighbours}], got {self.bandwidth_k!r}")
+        set_("bandwidth_k", int(self.bandwidth_k))
+        if self.bandwidth_k > 0 and self.kernel_k > 0:
+            raise ValueError("bandwidth_k and kernel_k: choose one data-chosen width (one for "
+                             "the memory, or one per query), got both > 0")
         if not (0.0 <= self.region_scale <= 1.0):
             raise ValueError(f"region_scale: must be in [0, 1], got {self.region_scale}")
         set_("region_scale", float(self.region_scale))
@@ -260,7 +276,7 @@ class HedgerConfig:
         set_("value_eps", float(self.value_eps))
         if self.k_thresh is None:
             set_("k_thresh", selection_radius(self.bandwidth, self.min_weight, self.kernel_k,
-                                              self.kernel_range))
+                                              self.kernel_range, self.bandwidth_k))
         if not (math.isfinite(self.k_thresh) and self.k_thresh > 0):
             raise ValueError(f"k_thresh: must be a finite number > 0, got {self.k_thresh}")
         set_("k_thresh", float(self.k_thresh))

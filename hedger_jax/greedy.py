@@ -22,6 +22,7 @@ import jax
 import jax.numpy as jnp
 
 from hedger_jax.config import HedgerConfig
+from hedger_jax.data_bandwidth import with_data_bandwidth
 from hedger_jax.memory import Memory
 from hedger_jax.params import resolve
 from hedger_jax.validation import expect, expect_key
@@ -199,6 +200,7 @@ def _discrete_values(config: HedgerConfig, memory: Memory, state: jax.Array, par
     """Every discrete action's prediction: state (S,) -> (actions (n, A), values (n,),
     known (n,), K of each (n, k) as ``_packed``)."""
     actions = jnp.asarray(config.discrete_actions, jnp.float32)          # (n, A)
+    params = with_data_bandwidth(config, memory, params)
     p = jax.vmap(lambda a: predict_detailed(config, memory, state, a, params))(actions)
     return actions, p.value, p.known, _packed(p)
 
@@ -206,6 +208,8 @@ def _discrete_values(config: HedgerConfig, memory: Memory, state: jax.Array, par
 def _continuous_search(config: HedgerConfig, memory: Memory, state: jax.Array, initial=None,
                        with_aux: bool = False, params=None):
     """``search_1d`` of Q(state, a) over the action interval (with_aux: K of each sample)."""
+    params = with_data_bandwidth(config, memory, params)
+
     def f(a):
         p = predict_detailed(config, memory, state, a[None], params)
         return (p.value, p.known, _packed(p)) if with_aux else (p.value, p.known)

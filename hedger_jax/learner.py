@@ -48,6 +48,7 @@ from hedger_jax.agent import (Evaluation, RunConfig, evaluate, explore_action, r
                               train_prefix, training_act, transitions_from_demonstrations)
 from hedger_jax.checkpoint import load_checkpoint, save_checkpoint
 from hedger_jax.config import HedgerConfig
+from hedger_jax.data_bandwidth import with_data_bandwidth
 from hedger_jax.greedy import greedy_action
 from hedger_jax.cpu import jit as _jit
 from hedger_jax import environments as _envs
@@ -95,10 +96,11 @@ def _learn_chunk(memory: Memory, key: jax.Array, env_params: Any, budget: jax.Ar
         mem = refresh_index(config, mem)
         obs0, s0 = env.reset(k_reset, env_params)
 
-        out = rollout(env, env_params, training_act(config, run, mem), k_run, max_steps, obs0,
-                      s0)
+        params = with_data_bandwidth(config, mem, None)   # once for the rollout and replay
+        out = rollout(env, env_params, training_act(config, run, mem, params=params), k_run,
+                      max_steps, obs0, s0)
         ep, length = out[0], out[1]
-        mem = train_prefix(config, mem, ep, length, *out[2:])
+        mem = train_prefix(config, mem, ep, length, *out[2:], params=params)
         ret = jnp.sum(jnp.where(ep.valid, ep.reward, 0.0))
         return (mem, key, steps + length, n + 1, lengths.at[n].set(length),
                 returns.at[n].set(ret))

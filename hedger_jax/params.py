@@ -21,7 +21,8 @@ from hedger_jax.config import (HedgerConfig, StaticFieldError, selection_radius,
                                warn_data_chosen_width_with_continuous_actions)
 
 #: Fields of ``HedgerParams``, in order.
-FIELDS = ("bandwidth", "min_weight", "kernel_k", "kernel_range", "region_scale", "value_eps",
+FIELDS = ("bandwidth", "min_weight", "kernel_k", "kernel_range", "bandwidth_k",
+          "region_scale", "value_eps",
           "k_thresh",
           "k_min", "alpha", "gamma", "default_value",
           "ridge", "ivh_tol", "input_offset", "input_scale", "use_ivh", "region_update",
@@ -31,7 +32,7 @@ RUN_FIELDS = ("epsilon", "noise_std")
 #: The boolean switches.
 _BOOLS = ("use_ivh", "region_update")
 #: The fields the selection radius k_thresh is derived from.
-_RADIUS_FIELDS = ("bandwidth", "min_weight", "kernel_k", "kernel_range")
+_RADIUS_FIELDS = ("bandwidth", "min_weight", "kernel_k", "kernel_range", "bandwidth_k")
 #: The (d,) vectors; every other field is a scalar.
 _VECTORS = ("input_offset", "input_scale")
 
@@ -57,6 +58,7 @@ class HedgerParams(NamedTuple):
     min_weight: Any
     kernel_k: Any
     kernel_range: Any
+    bandwidth_k: Any
     region_scale: Any
     value_eps: Any
     k_thresh: Any
@@ -104,7 +106,8 @@ class HedgerParams(NamedTuple):
         base.update(values)
         if "k_thresh" not in base:
             base["k_thresh"] = selection_radius(base["bandwidth"], base["min_weight"],
-                                                base["kernel_k"], base["kernel_range"])
+                                                base["kernel_k"], base["kernel_range"],
+                                                base["bandwidth_k"])
         params = _as_arrays(config, base)
         check_params(config, params)
         if "kernel_k" in values and not config.is_discrete and np.any(params.kernel_k > 0):
@@ -120,7 +123,8 @@ class HedgerParams(NamedTuple):
 
             get = lambda name: jnp.asarray(values.get(name, getattr(self, name)))  # noqa: E731
             h = get("bandwidth").astype(jnp.float32) * jnp.where(
-                get("kernel_k") > 0, get("kernel_range").astype(jnp.float32), 1.0)
+                (get("kernel_k") > 0) | (get("bandwidth_k") > 0),
+                get("kernel_range").astype(jnp.float32), 1.0)
             values["k_thresh"] = h * jnp.sqrt(jnp.log(1.0 / get("min_weight").astype(
                 jnp.float32)))
         return self._replace(**values)
@@ -140,7 +144,7 @@ def _as_arrays(config: HedgerConfig, values: dict) -> HedgerParams:
             out[name] = v.astype(np.float32)
         elif name in _BOOLS:
             out[name] = v.astype(bool)
-        elif name in ("k_min", "kernel_k"):
+        elif name in ("k_min", "kernel_k", "bandwidth_k"):
             if np.any(np.asarray(v) != np.round(v)):
                 raise InvalidParamsError(f"{name}: must be an integer, got {v}")
             out[name] = v.astype(np.int32)
@@ -179,6 +183,12 @@ def check_params(config: HedgerConfig, params: HedgerParams) -> HedgerParams:
     _bad("kernel_k", p["kernel_k"], (p["kernel_k"] >= 0) & (p["kernel_k"] <= config.max_neighbours),
          f"must be in [0, max_neighbours = {config.max_neighbours}]")
     _bad("kernel_range", p["kernel_range"], p["kernel_range"] >= 1, "must be >= 1")
+    _bad("bandwidth_k", p["bandwidth_k"],
+         (p["bandwidth_k"] >= 0) & (p["bandwidth_k"] <= config.max_neighbours),
+         f"must be in [0, max_neighbours = {config.max_neighbours}]")
+    _bad("bandwidth_k", p["bandwidth_k"], (p["bandwidth_k"] == 0) | (p["kernel_k"] == 0),
+         "and kernel_k: choose one data-chosen width (one for the memory, or one per "
+         "query), both > 0")
     _bad("value_eps", p["value_eps"], p["value_eps"] >= 0, "must be >= 0")
     _bad("region_scale", p["region_scale"], (p["region_scale"] >= 0) & (p["region_scale"] <= 1),
          "must be in [0, 1]")

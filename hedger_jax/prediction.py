@@ -7,6 +7,7 @@ import jax
 import jax.numpy as jnp
 
 from hedger_jax.config import HedgerConfig
+from hedger_jax.data_bandwidth import with_data_bandwidth
 from hedger_jax.params import HedgerParams, flag, from_fit_space, resolve
 from hedger_jax.validation import expect
 from hedger_jax.lwr import kernel_weights, local_fit_columns
@@ -95,6 +96,7 @@ def predict_detailed(config: HedgerConfig, memory: Memory, state: jax.Array,
     """
     expect("state", state, (config.state_dim,))
     expect("action", action, (config.action_dim,))
+    params = with_data_bandwidth(config, memory, params)
     return predict_scaled(config, memory, scale_inputs(config, state, action, params), params)
 
 

@@ -7,6 +7,7 @@ import jax
 import jax.numpy as jnp
 
 from hedger_jax.config import HedgerConfig
+from hedger_jax.data_bandwidth import with_data_bandwidth
 from hedger_jax.params import HedgerParams, flag, resolve, to_fit_space
 from hedger_jax.validation import expect_transition
 from hedger_jax.greedy import greedy_candidates, greedy_value_from
@@ -88,6 +89,7 @@ def train_step(config: HedgerConfig, memory: Memory, transition: Transition, cac
     """
     t = transition
     expect_transition(config, t, ())
+    params = with_data_bandwidth(config, memory, params)
     p = resolve(config, params)
     valid = jnp.asarray(t.valid, bool)
     z = scale_inputs(config, t.obs, t.action, params)
@@ -133,6 +135,7 @@ def train_episode(config: HedgerConfig, memory: Memory, episode: Transition,
     """
 
     expect_transition(config, episode, jnp.shape(episode.reward)[:1], "episode")
+    params = with_data_bandwidth(config, memory, params)     # once, from the memory before
 
     def body(mem, t):
         return train_step(config, mem, t, params=params)

@@ -187,7 +187,7 @@ def test_a_data_chosen_width_with_continuous_actions_warns(recwarn):
     box = _FakeEnv([-1.2, -0.07], [0.5, 0.07], ActionSpace.box([-1.0], [1.0]))
     discrete = _FakeEnv([-1.2, -0.07], [0.5, 0.07], ActionSpace.discrete([-1.0, 0.0, 1.0]))
     with pytest.warns(UserWarning, match="continuous actions"):
-        HedgerConfig.for_env(box, capacity=8, **ADAPTIVE)
+        HedgerConfig.for_env(box, capacity=8, kernel_k=8, kernel_range=8.0)
     cfg = HedgerConfig.for_env(box, capacity=8, max_bandwidth=1.0)
     with pytest.warns(UserWarning, match="continuous actions"):
         HedgerParams.create(cfg, kernel_k=[0, 8])

@@ -247,7 +247,7 @@ def test_select_variants_optional_and_eval_episodes():
     assert [v.label for v in fig.optional] == ["continuous (paper)", "continuous (adaptive)"]
     # The adaptive kernel is a traced setting: both lines are one program.
     assert runner.static_part(fig.variants[0]) == runner.static_part(fig.variants[1])
-    assert dict(fig.variants[1].params)["kernel_k"] > 0
+    assert dict(fig.variants[1].params)["bandwidth_k"] > 0
     # Default: the default variants only, unchanged.
     same = select_variants(fig)
     assert same.variants == fig.variants and same.optional == ()

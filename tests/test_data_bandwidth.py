@@ -1,0 +1,156 @@
+"""``bandwidth_k``: one kernel width for the whole memory, read from the stored data
+(``hedger_jax.data_bandwidth``) -- the width against a float64 NumPy computation of the rule
+written here, and every entry point (predict, greedy action, training step, evaluation,
+make_train) using that width."""
+import os
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+from hedger_jax import (HedgerConfig, HedgerParams, InvalidParamsError, RunConfig,  # noqa: E402
+                        Transition, add_points, greedy_action, init_memory, make_train,
+                        predict, train_step)
+from hedger_jax.agent import evaluate  # noqa: E402
+from hedger_jax.data_bandwidth import SAMPLE, data_bandwidth, with_data_bandwidth  # noqa: E402
+from hedger_np_ref import RefParams, f32  # noqa: E402
+
+ACTIONS = ((-0.05,), (0.0,), (0.05,))
+K = 16
+CFG = HedgerConfig(2, 1, capacity=300, bandwidth=0.05, max_bandwidth=0.4, max_neighbours=K,
+                   discrete_actions=ACTIONS, action_low=(-0.1,), action_high=(0.1,),
+                   neighbour_index="brute", bandwidth_k=8, kernel_range=8.0)
+
+
+def _data(seed=0, n=250):
+    """Two clusters of different density, so the median width is not a trivial one."""
+    rng = np.random.default_rng(seed)
+    S = np.concatenate([rng.uniform(0.0, 0.1, (n // 2, 2)), rng.uniform(0.3, 0.9, (n - n // 2, 2))])
+    A = rng.uniform(-0.1, 0.1, (n, 1))
+    V = 0.3 + S @ np.array([0.5, -0.4]) + 0.02 * rng.standard_normal(n)
+    return f32(S), f32(A), f32(V)
+
+
+def reference_width(points, size, h, m, kernel_range, min_weight, k):
+    """The rule in float64: the median over SAMPLE slots spread evenly over [0, size) of
+    d_m / sqrt(ln(1 / min_weight)), d_m the m-th smallest distance to the stored points
+    within the widest radius (at most the k nearest; fewer than m: the widest width), the
+    median at most h * kernel_range; h itself for an empty memory or m = 0."""
+    if size == 0 or m == 0:
+        return h
+    P = np.asarray(points, np.float64)[:size]
+    log_inv = np.log(1.0 / min_weight)
+    widest = h * kernel_range
+    radius = widest * np.sqrt(log_inv)
+    slots = np.clip(np.floor((np.arange(SAMPLE) + 0.5) * size / SAMPLE).astype(int), 0,
+                    size - 1)
+    widths = []
+    for s in slots:
+        d = np.sort(np.sqrt(((P - P[s]) ** 2).sum(1)))
+        d = d[d <= radius][:k]
+        widths.append(min(d[m - 1] / np.sqrt(log_inv), widest) if len(d) >= m else widest)
+    return min(float(np.median(widths)), widest)
+
+
+def _memory(cfg, n=250, seed=0):
+    S, A, V = _data(seed, n)
+    return add_points(cfg, init_memory(cfg), S, A, V), np.concatenate([S, A], 1)
+
+
+@pytest.mark.parametrize("index", ["brute", "grid"])
+def test_the_width_matches_the_float64_rule_for_a_grid_of_settings(index):
+    cfg = CFG.replace(neighbour_index=index)
+    mem, P = _memory(cfg)
+    grid = dict(bandwidth=[0.05, 0.02, 0.05, 0.01, 0.03], bandwidth_k=[8, 16, 3, 8, 0],
+                kernel_range=[8.0, 8.0, 2.0, 1.5, 8.0], min_weight=[0.01, 0.01, 0.05, 0.01, 0.01])
+    params = HedgerParams.create(cfg, **{k: np.asarray(v) for k, v in grid.items()})
+    got = np.asarray(jax.jit(jax.vmap(lambda p: data_bandwidth(cfg, mem, p)))(params))
+    for i in range(5):
+        want = reference_width(P, len(P), grid["bandwidth"][i], grid["bandwidth_k"][i],
+                               grid["kernel_range"][i], grid["min_weight"][i], K)
+        assert got[i] == pytest.approx(want, rel=1e-5), i
+    # The cases the grid exercises: a median below h, the cap at h * kernel_range, and off.
+    assert got[0] < 0.05 and got[3] == pytest.approx(0.015) and got[4] == pytest.approx(0.03)
+
+
+def test_an_empty_memory_keeps_the_bandwidth_and_off_changes_nothing():
+    assert float(data_bandwidth(CFG, init_memory(CFG))) == pytest.approx(CFG.bandwidth)
+    off = CFG.replace(bandwidth_k=0)
+    params = HedgerParams.create(off)
+    assert with_data_bandwidth(off, init_memory(off), None) is None
+    assert with_data_bandwidth(off, init_memory(off), params) is params
+
+
+def _resolved(cfg, mem, params):
+    """The same settings with the data's width as a fixed bandwidth (bandwidth_k = 0)."""
+    h = float(data_bandwidth(cfg, mem, params))
+    return params.replace(bandwidth=np.float32(h), bandwidth_k=np.int32(0)), h
+
+
+def test_predictions_training_and_evaluation_use_the_data_width():
+    mem, P = _memory(CFG)
+    params = HedgerParams.create(CFG)
+    fixed, h = _resolved(CFG, mem, params)
+    assert h < CFG.bandwidth                    # the dense data asks for a narrower kernel
+    s, a = jnp.asarray(f32([0.05, 0.04])), jnp.asarray(f32([0.02]))
+    # predict against the float64 reference at the data's width.
+    ref = RefParams(bandwidth=h, k_min=CFG.k_min, max_neighbours=K,
+                    k_thresh=h * np.sqrt(np.log(1.0 / CFG.min_weight)),
+                    default_value=CFG.default_value, use_ivh=True, ivh_tol=CFG.ivh_tol,
+                    alpha=CFG.alpha, gamma=CFG.gamma, region_update=True,
+                    discrete_actions=ACTIONS)
+    want = ref.predict(P, np.asarray(mem.values, np.float64)[:len(P)], len(P),
+                       np.concatenate([s, a]))
+    got = jax.jit(lambda: predict(CFG, mem, s, a))()
+    assert bool(got[1]) == want.known
+    assert float(got[0]) == pytest.approx(want.value, rel=2e-4, abs=2e-5)
+    # The config's bandwidth_k (params None), given params and the resolved fixed width agree.
+    for fn in (lambda p: predict(CFG, mem, s, a, p),
+               lambda p: greedy_action(CFG, mem, s, jax.random.PRNGKey(3), p)):
+        for x, y in zip(fn(params), fn(fixed)):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    tr = Transition(obs=s, action=a, reward=jnp.float32(0.1),
+                    next_obs=jnp.asarray(f32([0.06, 0.05])), terminated=jnp.bool_(False),
+                    valid=jnp.bool_(True))
+    m1, i1 = jax.jit(lambda: train_step(CFG, mem, tr))()
+    m2, i2 = jax.jit(lambda: train_step(CFG, mem, tr, params=fixed))()
+    np.testing.assert_array_equal(np.asarray(m1.values), np.asarray(m2.values))
+    np.testing.assert_array_equal(np.asarray(i1.q_new), np.asarray(i2.q_new))
+
+
+def test_evaluation_and_a_swept_run_use_the_data_width():
+    from envs.mountain_car import MountainCar
+
+    env = MountainCar()
+    cfg = HedgerConfig.for_env(env, capacity=1200, bandwidth=0.02, max_bandwidth=0.16,
+                               neighbour_index="brute", bandwidth_k=24, kernel_range=8.0)
+    run = RunConfig(n_blocks=1, episodes_per_block=2, eval_episodes=3)
+    train = make_train(env, cfg, run)
+    params = HedgerParams.create(cfg, bandwidth_k=np.asarray([24, 0]))
+    state, res = jax.jit(jax.vmap(train.train))(jax.random.split(jax.random.PRNGKey(0), 2),
+                                                params)
+    assert res.evaluation.mean_steps.shape == (2, 2)
+    mem = jax.tree_util.tree_map(lambda x: x[0], state.memory)
+    one = jax.tree_util.tree_map(lambda x: x[0], params)
+    fixed, h = _resolved(cfg, mem, one)
+    assert h != pytest.approx(cfg.bandwidth)
+    key = jax.random.PRNGKey(7)
+    ev = jax.jit(lambda p: evaluate(env, env.default_params(), cfg, mem, key, 3, 200,
+                                    params=p))
+    assert float(ev(one).mean_steps) == float(ev(fixed).mean_steps)
+
+
+def test_bad_settings_are_refused_with_named_errors():
+    with pytest.raises(ValueError, match="bandwidth_k"):
+        CFG.replace(bandwidth_k=K + 1)
+    with pytest.raises(ValueError, match="bandwidth_k and kernel_k"):
+        CFG.replace(kernel_k=4)
+    with pytest.raises(InvalidParamsError, match="bandwidth_k"):
+        HedgerParams.create(CFG, bandwidth_k=-1)
+    with pytest.raises(InvalidParamsError, match="bandwidth_k"):
+        HedgerParams.create(CFG.replace(bandwidth_k=0), kernel_k=np.asarray([0, 4]),
+                            bandwidth_k=np.asarray([8, 8]))
