@@ -49,6 +49,7 @@ from hedger_jax.config import HedgerConfig  # noqa: E402
 from hedger_jax.memory import init_memory, refresh_index, select_neighbours  # noqa: E402
 from hedger_jax.index import geometry, merge_threshold  # noqa: E402
 from hedger_jax.prediction import predict_scaled  # noqa: E402
+from hedger_jax.data_bandwidth import with_data_bandwidth  # noqa: E402
 import hedger_jax  # noqa: E402
 from hedger_jax import cpu as hj_cpu  # noqa: E402
 from numpy_baseline import NumpyHedger, time_episodes  # noqa: E402
@@ -286,9 +287,12 @@ def episodes_fn(cfg, continuous, n_episodes):
         k1, k2 = jax.random.split(key)
         obs0, s0 = env.reset(k1, params)
 
-        out = rollout(env, params, training_act(cfg, run, memory), k2, env.max_steps, obs0, s0)
+        hp = with_data_bandwidth(cfg, memory, None)     # as make_train: once per episode
+        out = rollout(env, params, training_act(cfg, run, memory, params=hp), k2,
+                      env.max_steps, obs0, s0)
         ep, length = out[0], out[1]
-        return refresh_index(cfg, train_prefix(cfg, memory, ep, length, *out[2:])), length
+        return refresh_index(cfg, train_prefix(cfg, memory, ep, length, *out[2:],
+                                               params=hp)), length
 
     def run_eps(memory, key):
         memory, lengths = jax.lax.scan(one, memory, jax.random.split(key, n_episodes))
@@ -388,8 +392,8 @@ def bench_train(settings, rng, results, quick):
                            v.astype(np.float64)),
             continuous, min_cpu=0.5 if quick else 2.0, min_episodes=1 if quick else 2)
         # "adaptive": the grid with the beyond-the-paper option, at 2e4 slots only: discrete
-        # hedger_jax.ADAPTIVE (its 8x selection radius makes the larger rows take many
-        # minutes), continuous hedger_jax.ADAPTIVE_CONTINUOUS (log values only).
+        # hedger_jax.ADAPTIVE (the width read from the memory once per rollout and once per
+        # replay), continuous hedger_jax.ADAPTIVE_CONTINUOUS.
         adaptive = hedger_jax.ADAPTIVE_CONTINUOUS if continuous else hedger_jax.ADAPTIVE
         for kind in ("brute", "grid", "adaptive"):
             if (kind == "brute" and cap > 100_000) or (kind == "adaptive" and cap > 20_000):

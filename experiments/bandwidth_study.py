@@ -1,8 +1,8 @@
 """Kernel-width study: the paper's fixed bandwidth against data-chosen widths, one program.
 
 ``python -m experiments.bandwidth_study [--bandwidths 0.01 0.02 0.05 0.1]
-[--methods paper adaptive] [--seeds 5] [--continuous] [--runs 200] [--eval-episodes 200]
-[--out results/bandwidth]``
+[--methods paper adaptive] [--seeds 5] [--first-seed 0] [--continuous] [--runs 200]
+[--eval-episodes 200] [--out results/bandwidth]``
 
 Every (method, initial bandwidth, seed) member runs the Figure-2 protocol (11 simulated-
 person demonstrations, then phase-two runs from random starts, greedy evaluations after
@@ -44,7 +44,8 @@ def _parse_method(text: str) -> Dict[str, Any]:
 
 
 def run(bandwidths: List[float], methods: List[str], seeds: int, continuous: bool, runs: int,
-        eval_episodes: int, capacity: int, seed_mode: str = "map") -> Dict[str, Any]:
+        eval_episodes: int, capacity: int, seed_mode: str = "map",
+        first_seed: int = 0) -> Dict[str, Any]:
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -66,11 +67,13 @@ def run(bandwidths: List[float], methods: List[str], seeds: int, continuous: boo
     run_cfg = RunConfig(n_blocks=blocks, episodes_per_block=max(1, runs // blocks),
                         eval_episodes=eval_episodes)
     specs = [(m, _parse_method(m)) for m in methods]
-    widest = max(h * (float(s.get("kernel_range", 4.0)) if s.get("kernel_k", 0) else 1.0)
+    widest = max(h * (float(s.get("kernel_range", 4.0))
+                      if s.get("kernel_k", 0) or s.get("bandwidth_k", 0) else 1.0)
                  for h in bandwidths for _, s in specs)
     config = HedgerConfig.for_env(env, capacity=capacity, bandwidth=min(bandwidths),
                                   max_bandwidth=widest, neighbour_index="grid", **base)
-    members = [(m, h, s) for m, _ in specs for h in bandwidths for s in range(seeds)]
+    members = [(m, h, s) for m, _ in specs for h in bandwidths
+               for s in range(first_seed, first_seed + seeds)]
     settings: Dict[str, Any] = {}
     for m, spec in specs:
         for h in bandwidths:
@@ -106,8 +109,10 @@ def run(bandwidths: List[float], methods: List[str], seeds: int, continuous: boo
         for h in bandwidths:
             sel = [i for i, (mm, hh, _) in enumerate(members) if mm == m and hh == h]
             first, last = steps[sel, 0], steps[sel, -1]
-            rows.append({"method": m, "bandwidth": h, "after_phase1": list(mean_ci(first)),
-                         "final": list(mean_ci(last)), "per_seed_final": last.tolist(),
+            rows.append({"method": m, "bandwidth": h,
+                         "after_phase1": [float(x) for x in mean_ci(first)],
+                         "final": [float(x) for x in mean_ci(last)],
+                         "per_seed_final": last.tolist(),
                          "per_seed_phase1": first.tolist(), "curve": steps[sel].tolist(),
                          "points": float(points[sel, -1].mean())})
             print(f"{m:>12s} h={h:<7g} after phase 1 {rows[-1]['after_phase1'][0]:6.1f} "
@@ -115,7 +120,8 @@ def run(bandwidths: List[float], methods: List[str], seeds: int, continuous: boo
                   f"{rows[-1]['final'][0]:6.1f} ± {rows[-1]['final'][1]:4.1f}   "
                   f"seeds {np.round(last, 1).tolist()}", flush=True)
     return {"rows": rows, "seconds": seconds, "methods": dict(specs), "continuous": continuous,
-            "runs": runs, "seeds": seeds, "eval_episodes": eval_episodes,
+            "runs": runs, "seeds": seeds, "first_seed": first_seed,
+            "eval_episodes": eval_episodes,
             "config": {"capacity": capacity, "max_bandwidth": widest}}
 
 
@@ -129,6 +135,8 @@ def main(argv=None) -> int:
                         "or name:key=value,... of "
                         "HedgerParams fields (default: paper adaptive)")
     p.add_argument("--seeds", type=int, default=5, help="seeds (default: 5)")
+    p.add_argument("--first-seed", type=int, default=0,
+                   help="seeds first-seed, first-seed + 1, ... (default: 0)")
     p.add_argument("--continuous", action="store_true", help="continuous actions")
     p.add_argument("--runs", type=int, default=200, help="phase-two runs (default: 200)")
     p.add_argument("--eval-episodes", type=int, default=200,
@@ -142,7 +150,7 @@ def main(argv=None) -> int:
     cpu.configure(host_devices=os.cpu_count() if (os.cpu_count() or 1) > 1 else None)
     try:
         out = run(a.bandwidths, a.methods, a.seeds, a.continuous, a.runs, a.eval_episodes,
-                  a.capacity)
+                  a.capacity, first_seed=a.first_seed)
     except KeyboardInterrupt:
         print("\ninterrupted", file=sys.stderr)
         return 130
@@ -154,7 +162,7 @@ def main(argv=None) -> int:
 
     kind = "continuous" if a.continuous else "discrete"
     plot_robustness(name[:-len(".json")] + ".png",
-                    f"Robustness to the bandwidth setting ({kind} mountain car, 11 "
+                    f"Robustness to the bandwidth setting\n({kind} mountain car, 11 "
                     f"demonstrations + {a.runs} runs)", out["rows"], {"paper's HEDGER": 56})
     print(f"wrote {name} and its plot ({out['seconds']:.0f} s)")
     return 0
