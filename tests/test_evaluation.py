@@ -88,7 +88,9 @@ from hedger_jax.config import HedgerConfig  # noqa: E402
 from hedger_jax.greedy import greedy_action  # noqa: E402
 
 
-@pytest.mark.parametrize("continuous, exploration", [(False, "random"), (True, "gaussian")])
+# Continuous (~11 s) in the full suite: the discrete case checks the same greedy_only switch.
+@pytest.mark.parametrize("continuous, exploration", [
+    (False, "random"), pytest.param(True, "gaussian", marks=pytest.mark.full)])
 def test_explore_action_greedy_only_is_the_greedy_action(continuous, exploration):
     env = MountainCar(continuous=continuous)
     cfg = HedgerConfig.for_env(env, capacity=256, bandwidth=0.1)

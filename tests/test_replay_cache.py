@@ -203,8 +203,10 @@ def test_vmapped_memories_that_disagree_all_search():
         _assert_same(jax.tree_util.tree_map(lambda x: x[i], got), want)
 
 
-@pytest.mark.parametrize("env_name,kind", [("mountain_car_discrete", "grid"),
-                                           ("mountain_car_continuous", "brute")])
+# The continuous case (~11 s) in the full suite: the merge it checks is the same code.
+@pytest.mark.parametrize("env_name,kind", [
+    ("mountain_car_discrete", "grid"),
+    pytest.param("mountain_car_continuous", "brute", marks=pytest.mark.full)])
 def test_training_with_the_records_equals_training_without(env_name, kind):
     """Episodes from a seeded memory: the rollout records its sets, the replay merges them.
     Same memory as the replay that searches every query (the same sets; the values to
