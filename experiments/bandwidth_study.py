@@ -32,11 +32,12 @@ METHODS: Dict[str, Dict[str, Any]] = {
 
 
 def _parse_method(text: str) -> Dict[str, Any]:
-    """A method by name (``METHODS``) or as ``name:key=value,key=value``."""
+    """A method by name (``METHODS``) or as ``name:key=value,key=value``: the named method's
+    settings (none for a new name) with those values set."""
     if text in METHODS:
         return dict(METHODS[text])
-    _, _, spec = text.partition(":")
-    out = {}
+    name, _, spec = text.partition(":")
+    out = dict(METHODS.get(name, {}))
     for item in filter(None, spec.split(",")):
         k, _, v = item.partition("=")
         out[k] = float(v) if "." in v or "e" in v else int(v)
@@ -132,8 +133,8 @@ def main(argv=None) -> int:
                    help="initial bandwidths (default: 0.01 0.02 0.05 0.1)")
     p.add_argument("--methods", nargs="+", default=["paper", "adaptive"],
                    help="methods: names (paper, adaptive, paper-bounds, adaptive-continuous) "
-                        "or name:key=value,... of "
-                        "HedgerParams fields (default: paper adaptive)")
+                        "or name:key=value,...: the named method (if any) with "
+                        "those HedgerParams fields set (default: paper adaptive)")
     p.add_argument("--seeds", type=int, default=5, help="seeds (default: 5)")
     p.add_argument("--first-seed", type=int, default=0,
                    help="seeds first-seed, first-seed + 1, ... (default: 0)")
