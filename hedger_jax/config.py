@@ -57,12 +57,16 @@ def reject_traced(owner: str, name: str, value: Any) -> None:
                                    f"or vmapped; {hint}")
 
 
+#: Stored points the data-chosen width (``bandwidth_k``) counts neighbours among
+#: (``hedger_jax.data_bandwidth``): ``bandwidth_k`` is at most this.
+BANDWIDTH_POOL = 1024
 #: The adaptive kernel (beyond the paper): one kernel width read from the stored data once
-#: per episode (the median width that gives a stored point's 24th nearest stored point the
-#: weight ``min_weight``, at most 8x ``bandwidth``), fitting log-scale values. Use as
+#: per episode (the median width that gives a stored point its 4th nearest neighbour among
+#: 1024 stored points spread over the memory the weight ``min_weight``: the kernel spans a
+#: fixed fraction of the data; at most 2x ``bandwidth``), fitting log-scale values. Use as
 #: ``HedgerConfig(..., **ADAPTIVE)`` or ``HedgerParams.create(config, **ADAPTIVE)``; see
 #: docs/adaptive-kernel.md for how it was chosen.
-ADAPTIVE = types.MappingProxyType({"bandwidth_k": 24, "kernel_range": 8.0, "value_eps": 1e-6})
+ADAPTIVE = types.MappingProxyType({"bandwidth_k": 4, "kernel_range": 2.0, "value_eps": 1e-6})
 #: For continuous actions: the same settings (the per-query width of ``kernel_k`` collapses
 #: there; the width read from the memory does not). Scale the action from its bounds
 #: (``HedgerConfig.for_env(..., action_scale="bounds")``); see docs/adaptive-kernel.md.
@@ -141,8 +145,9 @@ class HedgerConfig:
     neighbours are then searched within the widest kernel's radius (the default k_thresh is
     ``kernel_range`` times the paper's). With ``bandwidth_k`` = m > 0 instead, one width for
     the whole memory: the median over stored points of the width giving their m-th nearest
-    stored point ``min_weight``, at most bandwidth * kernel_range, read once per episode
-    (``hedger_jax.data_bandwidth``); at most one of the two is > 0.
+    neighbour among ``BANDWIDTH_POOL`` stored points ``min_weight``, at most bandwidth *
+    kernel_range, read once per episode (``hedger_jax.data_bandwidth``); at most one of the
+    two is > 0.
 
     Training: ``alpha``/``gamma`` of Q-learning; ``region_update`` moves every neighbour
     towards the new value by its kernel weight (Algorithm 2 lines 7-8), scaled by
@@ -261,9 +266,9 @@ class HedgerConfig:
                              f"{self.kernel_range}")
         set_("kernel_range", float(self.kernel_range))
         if isinstance(self.bandwidth_k, bool) or int(self.bandwidth_k) != self.bandwidth_k \
-                or not 0 <= self.bandwidth_k <= self.max_neighbours:
-            raise ValueError(f"bandwidth_k: must be an integer in [0, max_neighbours = "
-                             f"{self.max_neighbours}], got {self.bandwidth_k!r}")
+                or not 0 <= self.bandwidth_k <= BANDWIDTH_POOL:
+            raise ValueError(f"bandwidth_k: must be an integer in [0, {BANDWIDTH_POOL}] (the "
+                             f"pool the width is read from), got {self.bandwidth_k!r}")
         set_("bandwidth_k", int(self.bandwidth_k))
         if self.bandwidth_k > 0 and self.kernel_k > 0:
             raise ValueError("bandwidth_k and kernel_k: choose one data-chosen width (one for "

@@ -17,7 +17,7 @@ from typing import Any, NamedTuple, Optional
 
 import numpy as np
 
-from hedger_jax.config import (HedgerConfig, StaticFieldError, selection_radius,
+from hedger_jax.config import (BANDWIDTH_POOL, HedgerConfig, StaticFieldError, selection_radius,
                                warn_data_chosen_width_with_continuous_actions)
 
 #: Fields of ``HedgerParams``, in order.
@@ -184,8 +184,8 @@ def check_params(config: HedgerConfig, params: HedgerParams) -> HedgerParams:
          f"must be in [0, max_neighbours = {config.max_neighbours}]")
     _bad("kernel_range", p["kernel_range"], p["kernel_range"] >= 1, "must be >= 1")
     _bad("bandwidth_k", p["bandwidth_k"],
-         (p["bandwidth_k"] >= 0) & (p["bandwidth_k"] <= config.max_neighbours),
-         f"must be in [0, max_neighbours = {config.max_neighbours}]")
+         (p["bandwidth_k"] >= 0) & (p["bandwidth_k"] <= BANDWIDTH_POOL),
+         f"must be in [0, {BANDWIDTH_POOL}] (the pool the width is read from)")
     _bad("bandwidth_k", p["bandwidth_k"], (p["bandwidth_k"] == 0) | (p["kernel_k"] == 0),
          "and kernel_k: choose one data-chosen width (one for the memory, or one per "
          "query), both > 0")

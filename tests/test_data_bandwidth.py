@@ -16,7 +16,7 @@ from hedger_jax import (HedgerConfig, HedgerParams, InvalidParamsError, RunConfi
                         Transition, add_points, greedy_action, init_memory, make_train,
                         predict, train_step)
 from hedger_jax.agent import evaluate  # noqa: E402
-from hedger_jax.data_bandwidth import SAMPLE, data_bandwidth, with_data_bandwidth  # noqa: E402
+from hedger_jax.data_bandwidth import POOL, SAMPLE, data_bandwidth, with_data_bandwidth  # noqa: E402
 from hedger_np_ref import RefParams, f32  # noqa: E402
 
 ACTIONS = ((-0.05,), (0.0,), (0.05,))
@@ -35,25 +35,24 @@ def _data(seed=0, n=250):
     return f32(S), f32(A), f32(V)
 
 
-def reference_width(points, size, h, m, kernel_range, min_weight, k):
-    """The rule in float64: the median over SAMPLE slots spread evenly over [0, size) of
-    d_m / sqrt(ln(1 / min_weight)), d_m the m-th smallest distance to the stored points
-    within the widest radius (at most the k nearest; fewer than m: the widest width), the
-    median at most h * kernel_range; h itself for an empty memory or m = 0."""
+def reference_width(points, size, h, m, kernel_range, min_weight):
+    """The rule in float64: a pool of POOL slots spread evenly over [0, size) (every slot
+    while size <= POOL) and SAMPLE of its points spread evenly over it; each sample point's
+    distance d_m to its m-th nearest pool point (itself included; fewer than m: infinite);
+    the lower median of d_m / sqrt(ln(1 / min_weight)), at most h * kernel_range; h itself
+    for an empty memory or m = 0."""
     if size == 0 or m == 0:
         return h
     P = np.asarray(points, np.float64)[:size]
-    log_inv = np.log(1.0 / min_weight)
-    widest = h * kernel_range
-    radius = widest * np.sqrt(log_inv)
-    slots = np.clip(np.floor((np.arange(SAMPLE) + 0.5) * size / SAMPLE).astype(int), 0,
-                    size - 1)
+    pool = np.floor((np.arange(POOL) + 0.5) * max(size, POOL) / POOL).astype(int)
+    pool = P[pool[pool < size]]
+    rows = np.floor((np.arange(SAMPLE) + 0.5) * len(pool) / SAMPLE).astype(int)
     widths = []
-    for s in slots:
-        d = np.sort(np.sqrt(((P - P[s]) ** 2).sum(1)))
-        d = d[d <= radius][:k]
-        widths.append(min(d[m - 1] / np.sqrt(log_inv), widest) if len(d) >= m else widest)
-    return min(float(np.median(widths)), widest)
+    for r in rows:
+        d = np.sort(np.sqrt(((pool - pool[r]) ** 2).sum(1)))
+        widths.append(d[m - 1] if len(d) >= m else np.inf)
+    lower_median = np.sort(widths)[SAMPLE // 2 - 1]
+    return min(lower_median / np.sqrt(np.log(1.0 / min_weight)), h * kernel_range)
 
 
 def _memory(cfg, n=250, seed=0):
@@ -61,20 +60,34 @@ def _memory(cfg, n=250, seed=0):
     return add_points(cfg, init_memory(cfg), S, A, V), np.concatenate([S, A], 1)
 
 
-@pytest.mark.parametrize("index", ["brute", "grid"])
-def test_the_width_matches_the_float64_rule_for_a_grid_of_settings(index):
-    cfg = CFG.replace(neighbour_index=index)
-    mem, P = _memory(cfg)
+@pytest.mark.parametrize("n", [5, 250, 6000])   # fewer than m points, all in the pool, subsampled
+def test_the_width_matches_the_float64_rule_for_a_grid_of_settings(n):
+    cfg = CFG.replace(capacity=max(n, 300))
+    mem, P = _memory(cfg, n)
     grid = dict(bandwidth=[0.05, 0.02, 0.05, 0.01, 0.03], bandwidth_k=[8, 16, 3, 8, 0],
                 kernel_range=[8.0, 8.0, 2.0, 1.5, 8.0], min_weight=[0.01, 0.01, 0.05, 0.01, 0.01])
     params = HedgerParams.create(cfg, **{k: np.asarray(v) for k, v in grid.items()})
     got = np.asarray(jax.jit(jax.vmap(lambda p: data_bandwidth(cfg, mem, p)))(params))
     for i in range(5):
         want = reference_width(P, len(P), grid["bandwidth"][i], grid["bandwidth_k"][i],
-                               grid["kernel_range"][i], grid["min_weight"][i], K)
+                               grid["kernel_range"][i], grid["min_weight"][i])
         assert got[i] == pytest.approx(want, rel=1e-5), i
-    # The cases the grid exercises: a median below h, the cap at h * kernel_range, and off.
-    assert got[0] < 0.05 and got[3] == pytest.approx(0.015) and got[4] == pytest.approx(0.03)
+    # The cases the grid exercises: a median below h (with enough points), the cap at
+    # h * kernel_range (not reached by the densest memory), and off.
+    assert got[4] == pytest.approx(0.03) and (got[0] < 0.05) == (n > 8)
+    assert (got[3] == pytest.approx(0.015)) == (n < 6000)
+
+
+def test_the_width_does_not_shrink_as_a_memory_of_one_distribution_fills():
+    """The kernel spans a fraction of the data: 4x the points (all beyond the pool) leave the
+    width within a few per cent, where the m-th neighbour of all of them would be ~2x closer."""
+    n_max = 4 * (POOL + 1000)
+    cfg = CFG.replace(capacity=n_max)
+    rng = np.random.default_rng(3)
+    S, A = f32(rng.uniform(0, 1, (n_max, 2))), f32(rng.uniform(-0.1, 0.1, (n_max, 1)))
+    widths = [float(data_bandwidth(cfg, add_points(cfg, init_memory(cfg), S[:n], A[:n],
+                                                   f32(np.zeros(n))))) for n in (n_max // 4, n_max)]
+    assert widths[1] == pytest.approx(widths[0], rel=0.1)
 
 
 def test_an_empty_memory_keeps_the_bandwidth_and_off_changes_nothing():
@@ -146,7 +159,8 @@ def test_evaluation_and_a_swept_run_use_the_data_width():
 
 def test_bad_settings_are_refused_with_named_errors():
     with pytest.raises(ValueError, match="bandwidth_k"):
-        CFG.replace(bandwidth_k=K + 1)
+        CFG.replace(bandwidth_k=POOL + 1)
+    assert CFG.replace(bandwidth_k=K + 1).bandwidth_k == K + 1   # m is not limited by k
     with pytest.raises(ValueError, match="bandwidth_k and kernel_k"):
         CFG.replace(kernel_k=4)
     with pytest.raises(InvalidParamsError, match="bandwidth_k"):
