@@ -87,7 +87,7 @@ def warn_data_chosen_width_with_continuous_actions(config: "HedgerConfig") -> No
 #: The ``HedgerConfig`` and ``RunConfig`` fields that ``HedgerParams`` carries as traced values.
 _TRACED_FIELDS = ("bandwidth", "min_weight", "kernel_k", "kernel_range", "bandwidth_k",
                   "region_scale",
-                  "value_eps", "value_lcb",
+                  "value_eps",
                   "k_thresh", "k_min", "alpha", "gamma",
                   "default_value", "ridge", "ivh_tol", "input_offset", "input_scale", "use_ivh",
                   "region_update", "epsilon", "noise_std")
@@ -201,7 +201,6 @@ class HedgerConfig:
     bandwidth_k: int = 0
     region_scale: float = 1.0
     value_eps: float = 0.0
-    value_lcb: float = 0.0
     k_min: Optional[int] = None
     max_neighbours: int = 32
     default_value: float = 0.0
@@ -280,9 +279,6 @@ class HedgerConfig:
         if not (math.isfinite(self.value_eps) and self.value_eps >= 0.0):
             raise ValueError(f"value_eps: must be a finite number >= 0, got {self.value_eps}")
         set_("value_eps", float(self.value_eps))
-        if not (math.isfinite(self.value_lcb) and self.value_lcb >= 0.0):
-            raise ValueError(f"value_lcb: must be a finite number >= 0, got {self.value_lcb}")
-        set_("value_lcb", float(self.value_lcb))
         if self.k_thresh is None:
             set_("k_thresh", selection_radius(self.bandwidth, self.min_weight, self.kernel_k,
                                               self.kernel_range, self.bandwidth_k))

@@ -256,19 +256,10 @@ def greedy_draws(config: HedgerConfig) -> int:
     return len(config.discrete_actions) + 1 if config.is_discrete else config.action_dim
 
 
-def _fit_only(params):
-    """params for choosing actions: the fit itself, not the backup's lower bound
-    (``value_lcb`` is for the target's max over next actions only)."""
-    if params is None or (isinstance(params.value_lcb, float) and params.value_lcb == 0.0):
-        return params
-    return params._replace(value_lcb=0.0)
-
-
 def greedy_action_from_uniform(config: HedgerConfig, memory: Memory, state: jax.Array,
                                u: jax.Array, params=None):
     """``greedy_action`` with its randomness given: u float32 (``greedy_draws(config)``,) of
     U[0, 1) draws (tie-breaks, then the random action when nothing is known)."""
-    params = _fit_only(params)
     if config.is_discrete:
         return greedy_choice(config, memory, state, u, params)[:3]
     # Without the neighbour sets, so the search carries none through its loop.
@@ -280,7 +271,6 @@ def greedy_choice(config: HedgerConfig, memory: Memory, state: jax.Array, u: jax
                   params=None):
     """``greedy_action_from_uniform`` and the neighbour sets its search found:
     -> (action (A,), value (), known (), ``GreedySets``) for ``hedger_jax.replay_cache``."""
-    params = _fit_only(params)
     if config.is_discrete:
         actions, values, known, sets = _discrete_values(config, memory, state, params)
         n = actions.shape[0]

@@ -207,41 +207,14 @@ def local_fit(zc: jax.Array, y: jax.Array, w: jax.Array, mask: jax.Array, *,
     return local_fit_columns(zc.T, y, w, mask, ridge=ridge, ivh_tol=ivh_tol)
 
 
-def _lower_bound(zt, y, w, mean_w, y_w, chol, cw, lcb):
-    """The intercept less ``lcb`` standard errors: y_w - b'm_w - lcb * se, where se^2 =
-    s^2 sum_i l_i^2 is the variance of the intercept = sum_i l_i y_i with l_i = w_i (1/W -
-    (z_i - m_w)'C_w^-1 m_w), and s^2 = sum_i w_i r_i^2 / W the weighted mean squared residual
-    of the fit. zt (d, k) centred on the query, y, w (k,) zero where masked."""
-    L, inv_s = chol
-    b = _solve_upper_transposed(L, _solve_lower(L, cw * inv_s)) * inv_s
-    g = _solve_upper_transposed(L, _solve_lower(L, mean_w * inv_s)) * inv_s   # C_w^-1 m_w
-    W = jnp.sum(w)
-    inv_W = 1.0 / jnp.where(W > 0, W, 1.0)
-    v = zt - mean_w[:, None]                                                  # (d, k)
-    l = w * (inv_W - _sum_small(v * g[:, None]))
-    r = jnp.where(w > 0, y - y_w - _sum_small(v * b[:, None]), 0.0)
-    se = jnp.sqrt(jnp.sum(w * r * r) * inv_W * jnp.sum(l * l))
-    # Never below the lowest weighted neighbour value: a bound below every value seen says
-    # nothing, and would rank a known action below "don't know".
-    floor = jnp.min(jnp.where(w > 0, y, jnp.inf))
-    fit = y_w - _sum_small(b * mean_w)
-    return jnp.where(jnp.isfinite(floor),
-                     jnp.maximum(fit - jnp.asarray(lcb, jnp.float32) * se, jnp.minimum(floor, fit)),
-                     fit)
-
-
 def local_fit_columns(zt: jax.Array, y: jax.Array, w: jax.Array, mask: jax.Array, *,
-                      ridge: float = 1e-6, ivh_tol: float = 1e-3, lcb=0.0) -> LocalFit:
+                      ridge: float = 1e-6, ivh_tol: float = 1e-3) -> LocalFit:
     """``local_fit`` from feature-major neighbours: zt (d, k) = neighbour - query, one column
     per neighbour (the layout of ``Memory.points``' gathered columns); y, w, mask (k,).
-    Entries where ``mask`` is False are ignored whatever their y and w. lcb (float or
-    traced ()): the value is the fit less that many of its standard errors (0: the fit)."""
+    Entries where ``mask`` is False are ignored whatever their y and w."""
     y = jnp.where(mask, y, 0.0)
     w = jnp.where(mask, w, 0.0)
     n, mean, u, chol, mean_w, y_w, chol_w, cw = _fit_parts(zt, y, w, mask.astype(zt.dtype),
                                                             ridge)
-    if isinstance(lcb, float) and lcb == 0.0:
-        value = _intercept(mean_w, y_w, chol_w, cw)
-    else:
-        value = _lower_bound(zt, y, w, mean_w, y_w, chol_w, cw, lcb)
-    return LocalFit(value=value, inside=_hull(n, mean, u, chol, mask, ivh_tol))
+    return LocalFit(value=_intercept(mean_w, y_w, chol_w, cw),
+                    inside=_hull(n, mean, u, chol, mask, ivh_tol))

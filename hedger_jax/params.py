@@ -22,7 +22,7 @@ from hedger_jax.config import (BANDWIDTH_POOL, HedgerConfig, StaticFieldError, s
 
 #: Fields of ``HedgerParams``, in order.
 FIELDS = ("bandwidth", "min_weight", "kernel_k", "kernel_range", "bandwidth_k",
-          "region_scale", "value_eps", "value_lcb",
+          "region_scale", "value_eps",
           "k_thresh",
           "k_min", "alpha", "gamma", "default_value",
           "ridge", "ivh_tol", "input_offset", "input_scale", "use_ivh", "region_update",
@@ -61,7 +61,6 @@ class HedgerParams(NamedTuple):
     bandwidth_k: Any
     region_scale: Any
     value_eps: Any
-    value_lcb: Any
     k_thresh: Any
     k_min: Any
     alpha: Any
@@ -191,7 +190,6 @@ def check_params(config: HedgerConfig, params: HedgerParams) -> HedgerParams:
          "and kernel_k: choose one data-chosen width (one for the memory, or one per "
          "query), both > 0")
     _bad("value_eps", p["value_eps"], p["value_eps"] >= 0, "must be >= 0")
-    _bad("value_lcb", p["value_lcb"], p["value_lcb"] >= 0, "must be >= 0")
     _bad("region_scale", p["region_scale"], (p["region_scale"] >= 0) & (p["region_scale"] <= 1),
          "must be in [0, 1]")
     for name in ("alpha", "gamma", "epsilon"):

@@ -59,8 +59,7 @@ def predict_from_neighbours(config: HedgerConfig, memory: Memory, z: jax.Array,
     sqdist = squared_distances(zt, jnp.zeros((zt.shape[0],), zt.dtype))
     p = resolve(config, params)
     w = kernel_weights(sqdist, kernel_width(p, sqdist, nb.mask), nb.mask)
-    fit = local_fit_columns(zt, y, w, nb.mask, ridge=p.ridge, ivh_tol=p.ivh_tol,
-                            lcb=p.value_lcb)
+    fit = local_fit_columns(zt, y, w, nb.mask, ridge=p.ridge, ivh_tol=p.ivh_tol)
     fit = fit._replace(value=from_fit_space(p, fit.value))
     count = jnp.sum(nb.mask).astype(jnp.int32)
     known = (count >= p.k_min) & jnp.isfinite(fit.value)

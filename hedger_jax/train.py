@@ -99,20 +99,13 @@ def train_step(config: HedgerConfig, memory: Memory, transition: Transition, cac
     zs = jnp.concatenate([z[None], scale_inputs(
         config, jnp.broadcast_to(t.next_obs, (acts.shape[0],) + t.next_obs.shape), acts,
         params)])
-    # With value_lcb the next actions' values are lower bounds (the backup's max), Q(s, a)
-    # is the fit itself: one lcb per row.
-    plain = isinstance(p.value_lcb, float) and p.value_lcb == 0.0
-    lcbs = None if plain else jnp.where(jnp.arange(zs.shape[0]) == 0, 0.0,
-                                        jnp.asarray(p.value_lcb, jnp.float32))
-    row = (lambda l: params) if plain else (lambda l: p._replace(value_lcb=l))
     if cached is None:
-        batch = jax.vmap(lambda zz, l: predict_scaled(config, memory, zz, row(l)),
-                         in_axes=(0, None if plain else 0))(zs, lcbs)
+        batch = jax.vmap(lambda zz: predict_scaled(config, memory, zz, params))(zs)
     else:
         nb = cached_neighbours(config, memory, zs, cached, jax.vmap(
             lambda zz: select_neighbours(config, memory, zz, params)), p.k_thresh)
-        batch = jax.vmap(lambda zz, n, l: predict_from_neighbours(config, memory, zz, n, row(l)),
-                         in_axes=(0, 0, None if plain else 0))(zs, nb, lcbs)
+        batch = jax.vmap(lambda zz, n: predict_from_neighbours(config, memory, zz, n, params))(
+            zs, nb)
     pred = jax.tree_util.tree_map(lambda x: x[0], batch)
     q_next, _ = greedy_value_from(config, memory, t.next_obs, batch.value[1:], batch.known[1:],
                                   params)
