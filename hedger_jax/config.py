@@ -63,10 +63,12 @@ BANDWIDTH_POOL = 1024
 #: The adaptive kernel (beyond the paper): one kernel width read from the stored data once
 #: per episode (the median width that gives a stored point its 4th nearest neighbour among
 #: 1024 stored points spread over the memory the weight ``min_weight``: the kernel spans a
-#: fixed fraction of the data; at most 2x ``bandwidth``), fitting log-scale values. Use as
+#: fixed fraction of the data; at most 2x ``bandwidth``), fitting log-scale values; the
+#: continuous greedy search breaks ties at random (``random_ties``). Use as
 #: ``HedgerConfig(..., **ADAPTIVE)`` or ``HedgerParams.create(config, **ADAPTIVE)``; see
 #: docs/adaptive-kernel.md for how it was chosen.
-ADAPTIVE = types.MappingProxyType({"bandwidth_k": 4, "kernel_range": 2.0, "value_eps": 1e-6})
+ADAPTIVE = types.MappingProxyType({"bandwidth_k": 4, "kernel_range": 2.0, "value_eps": 1e-6,
+                                   "random_ties": True})
 #: For continuous actions: the same settings (the per-query width of ``kernel_k`` collapses
 #: there; the width read from the memory does not). Scale the action from its bounds
 #: (``HedgerConfig.for_env(..., action_scale="bounds")``); see docs/adaptive-kernel.md.
@@ -90,7 +92,7 @@ _TRACED_FIELDS = ("bandwidth", "min_weight", "kernel_k", "kernel_range", "bandwi
                   "value_eps",
                   "k_thresh", "k_min", "alpha", "gamma",
                   "default_value", "ridge", "ivh_tol", "input_offset", "input_scale", "use_ivh",
-                  "region_update", "epsilon", "noise_std")
+                  "region_update", "random_ties", "epsilon", "noise_std")
 
 
 def selection_radius(bandwidth, min_weight, kernel_k=0, kernel_range=1.0, bandwidth_k=0):
@@ -149,14 +151,18 @@ class HedgerConfig:
     kernel_range, read once per episode (``hedger_jax.data_bandwidth``); at most one of the
     two is > 0.
 
+    Continuous greedy search: the best of its samples, ties to the first (the paper's search
+    names no rule); with ``random_ties`` (beyond the paper) equal best values at two or more
+    of the initial samples are broken at random, as the discrete set's ties always are.
+
     Training: ``alpha``/``gamma`` of Q-learning; ``region_update`` moves every neighbour
     towards the new value by its kernel weight (Algorithm 2 lines 7-8), scaled by
     ``region_scale`` (1: the paper).
 
     Traced settings: bandwidth, min_weight, k_thresh, k_min, alpha, gamma, default_value,
-    ridge, ivh_tol, input_offset, input_scale, use_ivh and region_update are the defaults of
-    ``HedgerParams`` (``hedger_jax.params``), which carries them as traced values; with
-    ``params=None`` these values are compile-time constants. ``max_bandwidth`` (default
+    ridge, ivh_tol, input_offset, input_scale, use_ivh, region_update and random_ties are
+    the defaults of ``HedgerParams`` (``hedger_jax.params``), which carries them as traced
+    values; with ``params=None`` these values are compile-time constants. ``max_bandwidth`` (default
     ``bandwidth``) is the largest bandwidth a ``HedgerParams`` may use: the grid index is
     built for its radius.
 
@@ -208,6 +214,7 @@ class HedgerConfig:
     gamma: float = 0.8
     use_ivh: bool = True
     region_update: bool = True
+    random_ties: bool = False
     discrete_actions: Optional[Tuple[Tuple[float, ...], ...]] = None
     action_low: Tuple[float, ...] = (-1.0,)
     action_high: Tuple[float, ...] = (1.0,)
@@ -339,7 +346,7 @@ class HedgerConfig:
             raise ValueError(f"ridge: must be in (0, 1), got {self.ridge}")
         if not (0.0 <= self.ivh_tol < 1.0):
             raise ValueError(f"ivh_tol: must be in [0, 1), got {self.ivh_tol}")
-        for name in ("use_ivh", "region_update"):
+        for name in ("use_ivh", "region_update", "random_ties"):
             set_(name, bool(getattr(self, name)))
         if self.neighbour_index not in NEIGHBOUR_INDEXES:
             raise ValueError(f"neighbour_index: must be one of {NEIGHBOUR_INDEXES}, "

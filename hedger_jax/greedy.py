@@ -20,6 +20,7 @@ from typing import Callable, NamedTuple, Tuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from hedger_jax.config import HedgerConfig
 from hedger_jax.data_bandwidth import with_data_bandwidth
@@ -118,15 +119,17 @@ def search_grid(low: float, high: float, n_samples: int) -> jax.Array:
 
 def search_1d(f: Callable[[jax.Array], Tuple[jax.Array, ...]], low: float, high: float,
               n_samples: int, iters: int, tol: float, initial=None, with_count: bool = False,
-              with_aux: bool = False):
+              with_aux: bool = False, ties=None):
     """Maximise f over [low, high]; f: x () -> (value (), known ()), or with ``with_aux``
     (value (), known (), aux): aux any pytree that f computes along (e.g. a neighbour set).
 
     ``initial``: optional (values (n_samples,), known (n_samples,)[, aux]) of f at
     ``search_grid(low, high, n_samples)``, when the caller evaluated them in a batch of its own.
+    ``ties``: optional (switch bool (), U[0, 1) draw ()): where the switch holds and two or
+    more initial samples share the best value, the draw picks one of them.
     Returns (x_best (), f_best (), any_known ()): the best evaluated sample (ties to the
-    first); with ``with_count`` also the number of refinement evaluations (int32 (), at most
-    ``iters``); with ``with_aux`` then also (aux of the grid's samples, leading axis
+    first, or as ``ties`` says); with ``with_count`` also the number of refinement
+    evaluations (int32 (), at most ``iters``); with ``with_aux`` then also (aux of the grid's samples, leading axis
     n_samples; aux of the best sample).
     """
     n_total = n_samples + iters
@@ -179,6 +182,19 @@ def search_1d(f: Callable[[jax.Array], Tuple[jax.Array, ...]], low: float, high:
     n_evals, xs, fs, filled, _, _, _, any_known, _, best_aux = jax.lax.while_loop(
         lambda c: c[6], body, init)
     best = _argmax_float(jnp.where(filled, fs, _NEG))
+    if ties is not None:
+        # Equal best values at two or more grid samples: one of them at random (while
+        # every value is still the same, ties to the first would always take the low end).
+        on, u_tie = ties
+        tied = (jnp.arange(n_total) < n_samples) & (fs == fs[best])
+        count = jnp.sum(tied)
+        rank = jnp.minimum((u_tie * count).astype(jnp.int32), count - 1)
+        pick = _first_index(tied & (jnp.cumsum(tied) - 1 == rank))
+        use = (count >= 2) & on
+        best = jnp.where(use, pick, best)
+        if with_aux:
+            best_aux = jax.tree_util.tree_map(
+                lambda a, b: jnp.where(use, a[jnp.minimum(pick, n_samples - 1)], b), aux0, best_aux)
     out = (xs[best], fs[best], any_known) + ((n_evals,) if with_count else ())
     return out + ((aux0, best_aux) if with_aux else ())
 
@@ -205,9 +221,21 @@ def _discrete_values(config: HedgerConfig, memory: Memory, state: jax.Array, par
     return actions, p.value, p.known, _packed(p)
 
 
+def _ties(config: HedgerConfig, params, u_tie):
+    """search_1d's ``ties`` (switch, draw): None where there is no draw or ``random_ties`` is
+    a constant False (the same program as without the option)."""
+    if u_tie is None:
+        return None
+    on = resolve(config, params).random_ties
+    if isinstance(on, (bool, np.bool_)) and not on:
+        return None
+    return jnp.asarray(on, bool), u_tie
+
+
 def _continuous_search(config: HedgerConfig, memory: Memory, state: jax.Array, initial=None,
-                       with_aux: bool = False, params=None):
-    """``search_1d`` of Q(state, a) over the action interval (with_aux: K of each sample)."""
+                       with_aux: bool = False, params=None, u_tie=None):
+    """``search_1d`` of Q(state, a) over the action interval (with_aux: K of each sample);
+    u_tie: a U[0, 1) draw () for ``random_ties`` (None: ties to the first)."""
     params = with_data_bandwidth(config, memory, params)
 
     def f(a):
@@ -215,7 +243,8 @@ def _continuous_search(config: HedgerConfig, memory: Memory, state: jax.Array, i
         return (p.value, p.known, _packed(p)) if with_aux else (p.value, p.known)
 
     return search_1d(f, config.action_low[0], config.action_high[0], config.greedy_samples,
-                     config.greedy_iters, config.greedy_tol, initial, with_aux=with_aux)
+                     config.greedy_iters, config.greedy_tol, initial, with_aux=with_aux,
+                     ties=_ties(config, params, u_tie))
 
 
 def greedy_candidates(config: HedgerConfig) -> jax.Array:
@@ -264,7 +293,8 @@ def greedy_action_from_uniform(config: HedgerConfig, memory: Memory, state: jax.
         return greedy_choice(config, memory, state, u, params)[:3]
     # Without the neighbour sets, so the search carries none through its loop.
     return _continuous_choice(config, u, *_continuous_search(config, memory, state,
-                                                             params=params), params=params)
+                                                             params=params, u_tie=u[0]),
+                              params=params)
 
 
 def greedy_choice(config: HedgerConfig, memory: Memory, state: jax.Array, u: jax.Array,
@@ -283,7 +313,7 @@ def greedy_choice(config: HedgerConfig, memory: Memory, state: jax.Array, u: jax
         return actions[idx], values[idx], any_known, GreedySets(sets, sets[idx],
                                                                 jnp.ones((), bool))
     x, value, any_known, sets, best = _continuous_search(config, memory, state, with_aux=True,
-                                                         params=params)
+                                                         params=params, u_tie=u[0])
     # A random action (nothing known) was not evaluated: its K is not known.
     return _continuous_choice(config, u, x, value, any_known, params) + (
         GreedySets(sets, best, any_known),)
@@ -304,7 +334,8 @@ def greedy_action(config: HedgerConfig, memory: Memory, state: jax.Array, key: j
                   params=None):
     """The greedy action: state (S,), key -> (action (A,), value (), known ()).
 
-    Ties among the best discrete actions are broken at random; when nothing is known the
+    Ties among the best discrete actions are broken at random, among the continuous
+    search's initial samples with ``random_ties`` (else the first); when nothing is known the
     action is uniformly random (from the set, or in the box), its value ``default_value``,
     and ``known`` is False. The randomness is one ``jax.random.uniform`` draw of
     ``greedy_draws(config)`` numbers from ``key``. params: ``HedgerParams``, or None for the

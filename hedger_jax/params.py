@@ -26,11 +26,11 @@ FIELDS = ("bandwidth", "min_weight", "kernel_k", "kernel_range", "bandwidth_k",
           "k_thresh",
           "k_min", "alpha", "gamma", "default_value",
           "ridge", "ivh_tol", "input_offset", "input_scale", "use_ivh", "region_update",
-          "epsilon", "noise_std")
+          "random_ties", "epsilon", "noise_std")
 #: The fields whose defaults come from ``RunConfig``, not ``HedgerConfig``.
 RUN_FIELDS = ("epsilon", "noise_std")
 #: The boolean switches.
-_BOOLS = ("use_ivh", "region_update")
+_BOOLS = ("use_ivh", "region_update", "random_ties")
 #: The fields the selection radius k_thresh is derived from.
 _RADIUS_FIELDS = ("bandwidth", "min_weight", "kernel_k", "kernel_range", "bandwidth_k")
 #: The (d,) vectors; every other field is a scalar.
@@ -51,7 +51,7 @@ class HedgerParams(NamedTuple):
     and discount. default_value: the "don't know" value. ridge, ivh_tol: numerics of the
     fit and the hull test. input_offset, input_scale: (d,) the query scaling
     z = (concat(s, a) - offset) * scale. use_ivh, region_update: the paper's ablation
-    switches (bool). epsilon, noise_std: exploration of the training runs.
+    switches (bool). random_ties: the continuous greedy search breaks ties at random (bool). epsilon, noise_std: exploration of the training runs.
     """
 
     bandwidth: Any
@@ -72,6 +72,7 @@ class HedgerParams(NamedTuple):
     input_scale: Any
     use_ivh: Any
     region_update: Any
+    random_ties: Any
     epsilon: Any
     noise_std: Any
 

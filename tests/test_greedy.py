@@ -429,3 +429,70 @@ def test_integer_argmax_and_argmin_equal_numpy_with_ties_zeros_and_infinities(se
             assert int(amax(jnp.asarray(x))) == int(np.argmax(x)), x
             a = np.abs(x)
             assert int(amin(jnp.asarray(a))) == int(np.argmin(a)), a
+
+
+# ------------------------------------------------------------------ random_ties
+def _flat_search(ties):
+    from hedger_jax.greedy import search_1d
+    return search_1d(lambda x: (jnp.float32(0.25), jnp.ones((), bool)), -1.0, 1.0, 11, 8, 1e-3,
+                     ties=ties)
+
+
+@pytest.mark.parametrize("u", [0.0, 0.3, 0.55, 0.999])
+def test_search_1d_random_ties_picks_the_draws_share_of_the_tied_samples(u):
+    """A flat function ties all 11 grid samples: with the switch on, the draw u picks sample
+    floor(11 u) (closed form); off, the first (-1); the value is the tied value either way."""
+    from hedger_jax.greedy import search_grid
+    grid = np.asarray(search_grid(-1.0, 1.0, 11))
+    x, fx, known = jax.jit(_flat_search)((jnp.bool_(True), jnp.float32(u)))
+    assert float(x) == grid[int(np.floor(11 * u))] and float(fx) == 0.25 and bool(known)
+    x_off, _, _ = jax.jit(_flat_search)((jnp.bool_(False), jnp.float32(u)))
+    assert float(x_off) == -1.0
+
+
+def test_search_1d_random_ties_leave_a_unique_maximum_alone():
+    from hedger_jax.greedy import search_1d
+    f = lambda x: (1.0 - (x - 0.3) ** 2, jnp.ones((), bool))  # noqa: E731
+    want = search_1d(f, -1.0, 1.0, 11, 8, 1e-3)
+    for u in (0.0, 0.5, 0.99):
+        got = search_1d(f, -1.0, 1.0, 11, 8, 1e-3, ties=(jnp.bool_(True), jnp.float32(u)))
+        assert float(got[0]) == float(want[0]) and float(got[1]) == float(want[1])
+
+
+def test_continuous_greedy_random_ties_spread_over_the_grid_and_default_off():
+    """Every stored value 0 (as before any reward has been backed up): every sample is known
+    with the fit exactly 0, so ties to the first always take the low end; with
+    ``random_ties`` the greedy action is uniform over the 11 samples (chi-square, 440 keys),
+    still known."""
+    from hedger_jax import HedgerParams
+    from hedger_jax.greedy import search_grid
+    Z, V, mem = _continuous_memory(lambda s, a: 0.0 * a, seed=4)
+    s0 = jnp.asarray(f32([0.5]))
+    acts, vals, known = _greedy_c(mem, s0, KEYS8)
+    assert np.all(np.asarray(known)) and np.all(np.asarray(acts) == -1.0)
+    keys = jax.random.split(jax.random.PRNGKey(7), 440)
+    params = HedgerParams.create(CFG_C, random_ties=True)
+    acts, vals, known = jax.jit(jax.vmap(
+        lambda k: greedy_action(CFG_C, mem, s0, k, params)))(keys)
+    a = np.asarray(acts)[:, 0]
+    grid = np.asarray(search_grid(-1.0, 1.0, 11))
+    assert np.all(np.asarray(known)) and np.all(np.isin(a, grid))
+    assert np.all(np.asarray(vals) == 0.0)
+    counts = np.array([(a == g).sum() for g in grid])
+    chi2 = ((counts - 40.0) ** 2 / 40.0).sum()
+    assert chi2 < 29.6, counts         # the 0.999 quantile of chi-square with 10 dof
+
+
+def test_random_ties_is_a_traced_switch():
+    """One program, the switch vmapped: False gives ties to the first, True spreads."""
+    from hedger_jax import HedgerParams
+    Z, V, mem = _continuous_memory(lambda s, a: 0.0 * a, seed=4)
+    s0 = jnp.asarray(f32([0.5]))
+    both = jax.tree_util.tree_map(lambda *x: jnp.stack([jnp.asarray(v) for v in x]),
+                                  HedgerParams.create(CFG_C, random_ties=False),
+                                  HedgerParams.create(CFG_C, random_ties=True))
+    keys = jax.random.split(jax.random.PRNGKey(3), 64)
+    acts = jax.jit(jax.vmap(lambda p: jax.vmap(
+        lambda k: greedy_action(CFG_C, mem, s0, k, p)[0])(keys)))(both)
+    acts = np.asarray(acts)[..., 0]
+    assert np.all(acts[0] == -1.0) and len(np.unique(acts[1])) >= 8
