@@ -69,10 +69,12 @@ BANDWIDTH_POOL = 1024
 #: docs/adaptive-kernel.md for how it was chosen.
 ADAPTIVE = types.MappingProxyType({"bandwidth_k": 4, "kernel_range": 2.0, "value_eps": 1e-6,
                                    "random_ties": True})
-#: For continuous actions: the same settings (the per-query width of ``kernel_k`` collapses
-#: there; the width read from the memory does not). Scale the action from its bounds
-#: (``HedgerConfig.for_env(..., action_scale="bounds")``); see docs/adaptive-kernel.md.
-ADAPTIVE_CONTINUOUS = ADAPTIVE
+#: For continuous actions: the same settings, and the width narrowed at the local-linear rate
+#: beyond 16,384 stored points (``bandwidth_shrink``: it helps continuous actions from random
+#: starts and hurts discrete ones, docs/adaptive-kernel.md). The per-query width of
+#: ``kernel_k`` collapses there; the width read from the memory does not. Scale the action
+#: from its bounds (``HedgerConfig.for_env(..., action_scale="bounds")``).
+ADAPTIVE_CONTINUOUS = types.MappingProxyType({**ADAPTIVE, "bandwidth_shrink": True})
 
 
 def warn_data_chosen_width_with_continuous_actions(config: "HedgerConfig") -> None:
@@ -88,7 +90,7 @@ def warn_data_chosen_width_with_continuous_actions(config: "HedgerConfig") -> No
 
 #: The ``HedgerConfig`` and ``RunConfig`` fields that ``HedgerParams`` carries as traced values.
 _TRACED_FIELDS = ("bandwidth", "min_weight", "kernel_k", "kernel_range", "bandwidth_k",
-                  "region_scale",
+                  "bandwidth_shrink", "region_scale",
                   "value_eps",
                   "k_thresh", "k_min", "alpha", "gamma",
                   "default_value", "ridge", "ivh_tol", "input_offset", "input_scale", "use_ivh",
@@ -147,8 +149,10 @@ class HedgerConfig:
     neighbours are then searched within the widest kernel's radius (the default k_thresh is
     ``kernel_range`` times the paper's). With ``bandwidth_k`` = m > 0 instead, one width for
     the whole memory: the median over stored points of the width giving their m-th nearest
-    neighbour among ``BANDWIDTH_POOL`` stored points ``min_weight``, at most bandwidth *
-    kernel_range, read once per episode (``hedger_jax.data_bandwidth``); at most one of the
+    neighbour among ``BANDWIDTH_POOL`` stored points ``min_weight`` (with
+    ``bandwidth_shrink``, narrowed at the local-linear rate size^(-1/(d+4)) beyond 16 pools;
+    no effect with ``bandwidth_k`` = 0), at most bandwidth * kernel_range, read once per
+    episode (``hedger_jax.data_bandwidth``); at most one of the
     two is > 0.
 
     Continuous greedy search: the best of its samples, ties to the first (the paper's search
@@ -160,7 +164,8 @@ class HedgerConfig:
     ``region_scale`` (1: the paper).
 
     Traced settings: bandwidth, min_weight, k_thresh, k_min, alpha, gamma, default_value,
-    ridge, ivh_tol, input_offset, input_scale, use_ivh, region_update and random_ties are
+    ridge, ivh_tol, input_offset, input_scale, use_ivh, region_update, random_ties and
+    bandwidth_shrink are
     the defaults of ``HedgerParams`` (``hedger_jax.params``), which carries them as traced
     values; with ``params=None`` these values are compile-time constants. ``max_bandwidth`` (default
     ``bandwidth``) is the largest bandwidth a ``HedgerParams`` may use: the grid index is
@@ -205,6 +210,7 @@ class HedgerConfig:
     kernel_k: int = 0
     kernel_range: float = 4.0
     bandwidth_k: int = 0
+    bandwidth_shrink: bool = False
     region_scale: float = 1.0
     value_eps: float = 0.0
     k_min: Optional[int] = None
@@ -346,7 +352,7 @@ class HedgerConfig:
             raise ValueError(f"ridge: must be in (0, 1), got {self.ridge}")
         if not (0.0 <= self.ivh_tol < 1.0):
             raise ValueError(f"ivh_tol: must be in [0, 1), got {self.ivh_tol}")
-        for name in ("use_ivh", "region_update", "random_ties"):
+        for name in ("use_ivh", "region_update", "random_ties", "bandwidth_shrink"):
             set_(name, bool(getattr(self, name)))
         if self.neighbour_index not in NEIGHBOUR_INDEXES:
             raise ValueError(f"neighbour_index: must be one of {NEIGHBOUR_INDEXES}, "

@@ -5,13 +5,19 @@ With ``HedgerParams.bandwidth_k`` = m > 0 the kernel bandwidth is not the given
 evenly over the filled slots (every point while fewer are stored) stands for the data; for
 ``SAMPLE`` pool points spread evenly over it, the width that gives the point's m-th nearest
 pool point (itself included) the weight ``min_weight`` is d_m / sqrt(ln(1 / min_weight)).
-The width is the lower median of those, at most h * ``kernel_range`` (the grid index is
+The width is the lower median of those (with ``bandwidth_shrink``, times
+(size / ``RATE_FROM``)^(-1 / (d + 4)) once more than ``RATE_FROM`` points are stored), at
+most h * ``kernel_range`` (the grid index is
 built for that radius). An empty memory keeps h. Predictions then use the paper's fixed
 kernel at that width.
 
 So the kernel spans a fixed fraction of the data (m / POOL, like LOESS's span) once the
 memory holds more than POOL points: the width does not shrink as a memory of one
-distribution fills, as the m-th neighbour among all stored points does.
+distribution fills, as the m-th neighbour among all stored points does (size^(-1/d)).
+With ``bandwidth_shrink`` it shrinks beyond ``RATE_FROM`` points at size^(-1/(d+4)), the
+rate of the asymptotically best width of a local-linear fit in d inputs (Ruppert & Wand
+1994). Measured: it helps continuous actions from random starts (the pool's points spread
+over the action too, which doubles the width) and hurts discrete ones.
 
 One width for the whole memory, not one per query: per-query widths make the fit's
 smoothing differ between the candidate actions the max compares (docs/adaptive-kernel.md).
@@ -39,6 +45,10 @@ from hedger_jax.params import HedgerParams, resolve
 POOL = BANDWIDTH_POOL
 #: Points of the pool (spread evenly over it) whose m-th-neighbour widths the median is over.
 SAMPLE = 64
+#: Stored points from which the width shrinks at the local-linear rate size^(-1/(d+4)):
+#: 16 pools, about the largest memories the span m = 4 was chosen on (the Figure-2
+#: protocol ends at 14,500-18,500 points; docs/adaptive-kernel.md).
+RATE_FROM = 16 * POOL
 #: The float32 +inf bit pattern: the upper end of the search over squared distances.
 _INF_BITS = 0x7F800000
 
@@ -97,7 +107,10 @@ def data_bandwidth(config: HedgerConfig, memory: Memory,
     pool = memory.points[:, jnp.clip(slots, 0, memory.points.shape[-1] - 1)]
     d2_m = median_mth_sqdist(pool, valid, rows, jnp.asarray(p.bandwidth_k, jnp.int32))
     log_inv = jnp.log(1.0 / jnp.asarray(p.min_weight, jnp.float32))
-    h = jnp.minimum(jnp.sqrt(d2_m / log_inv), widest)
+    shrink = (jnp.maximum(size, RATE_FROM).astype(jnp.float32) / RATE_FROM) ** (
+        -1.0 / (memory.points.shape[0] + 4))
+    shrink = jnp.where(jnp.asarray(p.bandwidth_shrink), shrink, 1.0)
+    h = jnp.minimum(jnp.sqrt(d2_m / log_inv) * shrink, widest)
     return jnp.where((size > 0) & (p.bandwidth_k > 0) & (h > 0), h, h0)
 
 

@@ -22,7 +22,7 @@ from hedger_jax.config import (BANDWIDTH_POOL, HedgerConfig, StaticFieldError, s
 
 #: Fields of ``HedgerParams``, in order.
 FIELDS = ("bandwidth", "min_weight", "kernel_k", "kernel_range", "bandwidth_k",
-          "region_scale", "value_eps",
+          "bandwidth_shrink", "region_scale", "value_eps",
           "k_thresh",
           "k_min", "alpha", "gamma", "default_value",
           "ridge", "ivh_tol", "input_offset", "input_scale", "use_ivh", "region_update",
@@ -30,7 +30,7 @@ FIELDS = ("bandwidth", "min_weight", "kernel_k", "kernel_range", "bandwidth_k",
 #: The fields whose defaults come from ``RunConfig``, not ``HedgerConfig``.
 RUN_FIELDS = ("epsilon", "noise_std")
 #: The boolean switches.
-_BOOLS = ("use_ivh", "region_update", "random_ties")
+_BOOLS = ("use_ivh", "region_update", "random_ties", "bandwidth_shrink")
 #: The fields the selection radius k_thresh is derived from.
 _RADIUS_FIELDS = ("bandwidth", "min_weight", "kernel_k", "kernel_range", "bandwidth_k")
 #: The (d,) vectors; every other field is a scalar.
@@ -51,7 +51,9 @@ class HedgerParams(NamedTuple):
     and discount. default_value: the "don't know" value. ridge, ivh_tol: numerics of the
     fit and the hull test. input_offset, input_scale: (d,) the query scaling
     z = (concat(s, a) - offset) * scale. use_ivh, region_update: the paper's ablation
-    switches (bool). random_ties: the continuous greedy search breaks ties at random (bool). epsilon, noise_std: exploration of the training runs.
+    switches (bool). random_ties: the continuous greedy search breaks ties at random (bool).
+    bandwidth_k, bandwidth_shrink: the width read from the memory (int32, bool;
+    ``hedger_jax.data_bandwidth``). epsilon, noise_std: exploration of the training runs.
     """
 
     bandwidth: Any
@@ -59,6 +61,7 @@ class HedgerParams(NamedTuple):
     kernel_k: Any
     kernel_range: Any
     bandwidth_k: Any
+    bandwidth_shrink: Any
     region_scale: Any
     value_eps: Any
     k_thresh: Any

@@ -16,7 +16,8 @@ from hedger_jax import (HedgerConfig, HedgerParams, InvalidParamsError, RunConfi
                         Transition, add_points, greedy_action, init_memory, make_train,
                         predict, train_step)
 from hedger_jax.agent import evaluate  # noqa: E402
-from hedger_jax.data_bandwidth import POOL, SAMPLE, data_bandwidth, with_data_bandwidth  # noqa: E402
+from hedger_jax.data_bandwidth import (POOL, RATE_FROM, SAMPLE, data_bandwidth,  # noqa: E402
+                                      with_data_bandwidth)
 from hedger_np_ref import RefParams, f32  # noqa: E402
 
 ACTIONS = ((-0.05,), (0.0,), (0.05,))
@@ -35,12 +36,13 @@ def _data(seed=0, n=250):
     return f32(S), f32(A), f32(V)
 
 
-def reference_width(points, size, h, m, kernel_range, min_weight):
+def reference_width(points, size, h, m, kernel_range, min_weight, shrink=False):
     """The rule in float64: a pool of POOL slots spread evenly over [0, size) (every slot
     while size <= POOL) and SAMPLE of its points spread evenly over it; each sample point's
     distance d_m to its m-th nearest pool point (itself included; fewer than m: infinite);
-    the lower median of d_m / sqrt(ln(1 / min_weight)), at most h * kernel_range; h itself
-    for an empty memory or m = 0."""
+    the lower median of d_m / sqrt(ln(1 / min_weight)), with ``shrink`` times
+    (size / RATE_FROM)^(-1/(d+4)) beyond RATE_FROM points, at most h * kernel_range; h
+    itself for an empty memory or m = 0."""
     if size == 0 or m == 0:
         return h
     P = np.asarray(points, np.float64)[:size]
@@ -52,7 +54,8 @@ def reference_width(points, size, h, m, kernel_range, min_weight):
         d = np.sort(np.sqrt(((pool - pool[r]) ** 2).sum(1)))
         widths.append(d[m - 1] if len(d) >= m else np.inf)
     lower_median = np.sort(widths)[SAMPLE // 2 - 1]
-    return min(lower_median / np.sqrt(np.log(1.0 / min_weight)), h * kernel_range)
+    factor = (max(size, RATE_FROM) / RATE_FROM) ** (-1.0 / (P.shape[1] + 4)) if shrink else 1.0
+    return min(lower_median / np.sqrt(np.log(1.0 / min_weight)) * factor, h * kernel_range)
 
 
 def _memory(cfg, n=250, seed=0):
@@ -60,22 +63,42 @@ def _memory(cfg, n=250, seed=0):
     return add_points(cfg, init_memory(cfg), S, A, V), np.concatenate([S, A], 1)
 
 
-@pytest.mark.parametrize("n", [5, 250, 6000])   # fewer than m points, all in the pool, subsampled
+# Fewer than m points, all in the pool, subsampled, and beyond RATE_FROM (where
+# bandwidth_shrink narrows the width).
+@pytest.mark.parametrize("n", [5, 250, 6000, 3 * RATE_FROM])
 def test_the_width_matches_the_float64_rule_for_a_grid_of_settings(n):
     cfg = CFG.replace(capacity=max(n, 300))
     mem, P = _memory(cfg, n)
     grid = dict(bandwidth=[0.05, 0.02, 0.05, 0.01, 0.03], bandwidth_k=[8, 16, 3, 8, 0],
-                kernel_range=[8.0, 8.0, 2.0, 1.5, 8.0], min_weight=[0.01, 0.01, 0.05, 0.01, 0.01])
+                kernel_range=[8.0, 8.0, 2.0, 1.5, 8.0], min_weight=[0.01, 0.01, 0.05, 0.01, 0.01],
+                bandwidth_shrink=[False, False, True, True, True])
     params = HedgerParams.create(cfg, **{k: np.asarray(v) for k, v in grid.items()})
     got = np.asarray(jax.jit(jax.vmap(lambda p: data_bandwidth(cfg, mem, p)))(params))
     for i in range(5):
         want = reference_width(P, len(P), grid["bandwidth"][i], grid["bandwidth_k"][i],
-                               grid["kernel_range"][i], grid["min_weight"][i])
+                               grid["kernel_range"][i], grid["min_weight"][i],
+                               grid["bandwidth_shrink"][i])
         assert got[i] == pytest.approx(want, rel=1e-5), i
     # The cases the grid exercises: a median below h (with enough points), the cap at
     # h * kernel_range (not reached by the densest memory), and off.
     assert got[4] == pytest.approx(0.03) and (got[0] < 0.05) == (n > 8)
     assert (got[3] == pytest.approx(0.015)) == (n < 6000)
+
+
+def test_bandwidth_shrink_narrows_the_width_at_the_local_linear_rate():
+    """A memory of one distribution filled from RATE_FROM to 4 RATE_FROM points: with
+    ``bandwidth_shrink`` the width falls by about 4^(-1/(d+4)) (d = 3), not the 4^(-1/d) of
+    the m-th neighbour of all points; without it, not at all (a fixed span)."""
+    n_max = 4 * RATE_FROM
+    cfg = CFG.replace(capacity=n_max, bandwidth_shrink=True)
+    rng = np.random.default_rng(4)
+    S, A = f32(rng.uniform(0, 1, (n_max, 2))), f32(rng.uniform(-0.1, 0.1, (n_max, 1)))
+    widths = [float(data_bandwidth(cfg, add_points(cfg, init_memory(cfg), S[:n], A[:n],
+                                                   f32(np.zeros(n))))) for n in (RATE_FROM, n_max)]
+    assert widths[1] / widths[0] == pytest.approx(4 ** (-1 / 7), rel=0.1)
+    mem = add_points(cfg, init_memory(cfg), S, A, f32(np.zeros(n_max)))
+    kept = float(data_bandwidth(cfg, mem, HedgerParams.create(cfg, bandwidth_shrink=False)))
+    assert widths[1] / kept == pytest.approx(4 ** (-1 / 7), rel=1e-5)
 
 
 def test_the_width_does_not_shrink_as_a_memory_of_one_distribution_fills():
