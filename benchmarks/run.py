@@ -336,17 +336,49 @@ class InterleavedBaseline:
         self.points, self.wall, self.episodes = self.points + p, self.wall + t, self.episodes + 1
 
 
+class InterleavedCalls:
+    """A second configuration's timed training calls, one per ``step``, each from a fresh copy
+    of ``mem``, so that ``time_training`` can alternate them with the calls it times: the
+    ratio of the two rates then compares the same minutes of this VM (timed apart, the
+    adaptive/grid ratio read 0.39-0.75 for one program across runs minutes apart)."""
+
+    def __init__(self, cfg, continuous, mem, n_episodes, min_cpu):
+        self.f = hj_cpu.jit(episodes_fn(cfg, continuous, n_episodes), donate_argnums=(0,))
+        self.mem, self.min_cpu = mem, min_cpu
+        self.points = self.cpu = self.wall = 0.0
+        self.calls = 0
+        t0 = time.perf_counter()
+        jax.block_until_ready(self.f(self._fresh(), jax.random.PRNGKey(0)))  # compile + warm-up
+        self.first_call_s = time.perf_counter() - t0
+
+    def _fresh(self):
+        return jax.block_until_ready(jax.tree_util.tree_map(jnp.copy, self.mem))
+
+    def done(self):
+        return self.calls >= 1 and self.cpu >= self.min_cpu
+
+    def step(self):
+        m = self._fresh()
+        key = jax.random.fold_in(jax.random.PRNGKey(1), self.calls + 1)
+        t0, c0 = time.perf_counter(), time.process_time()
+        _, pts = jax.block_until_ready(self.f(m, key))
+        self.wall, self.cpu = self.wall + time.perf_counter() - t0, \
+            self.cpu + time.process_time() - c0
+        self.points += float(np.sum(np.asarray(pts)))
+        self.calls += 1
+
+
 def time_training(cfg, continuous, mem, n_episodes, n_seeds=None, min_cpu=2.0,
-                  max_reps=40, seed_mode="vmap", baseline=None):
+                  max_reps=40, seed_mode="vmap", partners=()):
     """(points per CPU-second, first-call seconds, points per wall-second). ``seed_mode``:
     with ``n_seeds``, "vmap" (the seeds batched) or "map" (``lax.map``: one after another in
     the same program, as ``shard_seeds`` runs a CPU device's seeds).
 
     Each timed call runs ``n_episodes`` from a fresh copy of ``mem`` (copied outside the
     timing) with its own key, repeated until ``min_cpu`` CPU-seconds (or ``max_reps`` calls).
-    ``baseline`` (an ``InterleavedBaseline``): one of its episodes after each timed call,
-    until both have their minimum (then the calls go on past ``max_reps`` if the baseline
-    needs it), so both are timed over the same minutes.
+    ``partners`` (``InterleavedBaseline`` or ``InterleavedCalls``): one step of each after
+    each timed call, until all have their minimum (then the calls go on past ``max_reps`` if
+    a partner needs it), so all are timed over the same minutes.
     """
     fn = episodes_fn(cfg, continuous, n_episodes)
     if n_seeds is not None and seed_mode == "map":
@@ -368,15 +400,16 @@ def time_training(cfg, continuous, mem, n_episodes, n_seeds=None, min_cpu=2.0,
     n = wall = cpu = 0.0
     rep = 0
     while (cpu < min_cpu and rep < max_reps) or rep == 0 or \
-            (baseline is not None and not baseline.done()):
+            not all(p.done() for p in partners):
         rep += 1
         m = fresh()
         t0, c0 = time.perf_counter(), time.process_time()
         _, pts = jax.block_until_ready(f(m, keys(rep)))
         wall, cpu = wall + time.perf_counter() - t0, cpu + time.process_time() - c0
         n += float(np.sum(np.asarray(pts)))
-        if baseline is not None and not baseline.done():
-            baseline.step()
+        for p in partners:
+            if not p.done():
+                p.step()
     return n / cpu, t_first, n / wall
 
 
@@ -393,21 +426,33 @@ def bench_train(settings, rng, results, quick):
             continuous, min_cpu=0.5 if quick else 2.0, min_episodes=1 if quick else 2)
         # "adaptive": the grid with the beyond-the-paper option, at 2e4 slots only: discrete
         # hedger_jax.ADAPTIVE (the width read from the memory once per rollout and once per
-        # replay), continuous hedger_jax.ADAPTIVE_CONTINUOUS.
-        adaptive = hedger_jax.ADAPTIVE_CONTINUOUS if continuous else hedger_jax.ADAPTIVE
-        for kind in ("brute", "grid", "adaptive"):
-            if (kind == "brute" and cap > 100_000) or (kind == "adaptive" and cap > 20_000):
+        # replay), continuous hedger_jax.ADAPTIVE_CONTINUOUS; its calls alternate with the
+        # grid column's too, so adaptive / grid compares the same minutes.
+        partners = [base]
+        if cap <= 20_000:
+            preset = hedger_jax.ADAPTIVE_CONTINUOUS if continuous else hedger_jax.ADAPTIVE
+            cfg = mc_config(cap, "grid", continuous, **preset)
+            n_eps = episodes_per_call(cfg, 2 if quick else 4)
+            adaptive = InterleavedCalls(cfg, continuous, filled_memory(cfg, z, v), n_eps,
+                                        min_cpu=0.5 if quick else 2.0)
+            partners.append(adaptive)
+            row["adaptive_episodes_per_call"] = n_eps
+            row["adaptive_first_call_s"] = adaptive.first_call_s
+        for kind in ("brute", "grid"):
+            if kind == "brute" and cap > 100_000:
                 continue
-            cfg = mc_config(cap, "grid", continuous, **adaptive) \
-                if kind == "adaptive" else mc_config(cap, kind, continuous)
+            cfg = mc_config(cap, kind, continuous)
             n_eps = episodes_per_call(cfg, 2 if quick else 4)
             row[f"{kind}_episodes_per_call"] = n_eps
             pps, t_first, wall = time_training(
                 cfg, continuous, filled_memory(cfg, z, v), n_eps,
-                min_cpu=0.5 if quick else 2.0, baseline=base if kind == "grid" else None)
+                min_cpu=0.5 if quick else 2.0, partners=partners if kind == "grid" else ())
             row[f"{kind}_points_per_s"] = pps
             row[f"{kind}_points_per_wall_s"] = wall
             row[f"{kind}_first_call_s"] = t_first
+        if len(partners) > 1:
+            row["adaptive_points_per_s"] = adaptive.points / adaptive.cpu
+            row["adaptive_points_per_wall_s"] = adaptive.points / adaptive.wall
         row["baseline_points_per_s"] = base.points / base.cpu
         row["baseline_points_per_wall_s"] = base.points / base.wall
         row["baseline_episodes"] = base.episodes
@@ -535,9 +580,9 @@ def markdown(results) -> str:
                 "replay, one seed)", "",
                 "Each timed call runs episodes from the same stored points (the grid's: two "
                 "merge periods of its recent list per call, `episodes_per_call`, so the index "
-                "merges are paid as in a long run). The baseline's episodes alternate with the "
-                "grid column's calls (one after each), so both are timed over the same "
-                "minutes.", "",
+                "merges are paid as in a long run). The baseline's episodes and the adaptive "
+                "column's calls alternate with the grid column's calls (one of each after "
+                "each), so all three are timed over the same minutes.", "",
                 "| actions | capacity | stored points | brute /s | grid /s | grid /s wall | "
                 "baseline /s | brute ratio | grid ratio | adaptive /s | adaptive / grid |",
                 "|---|---|---|---|---|---|---|---|---|---|---|"]
