@@ -94,7 +94,7 @@ _TRACED_FIELDS = ("bandwidth", "min_weight", "kernel_k", "kernel_range", "bandwi
                   "value_eps",
                   "k_thresh", "k_min", "alpha", "gamma",
                   "default_value", "ridge", "ivh_tol", "input_offset", "input_scale", "use_ivh",
-                  "region_update", "random_ties", "epsilon", "noise_std")
+                  "region_update", "random_ties", "guess_unknown", "epsilon", "noise_std")
 
 
 def selection_radius(bandwidth, min_weight, kernel_k=0, kernel_range=1.0, bandwidth_k=0):
@@ -158,14 +158,18 @@ class HedgerConfig:
     Continuous greedy search: the best of its samples, ties to the first (the paper's search
     names no rule); with ``random_ties`` (beyond the paper) equal best values at two or more
     of the initial samples are broken at random, as the discrete set's ties always are.
+    Where no candidate is known the greedy action is random (the paper); with
+    ``guess_unknown`` (beyond the paper) it is first chosen by the same local fits without
+    the hull check, and is random only where those too know nothing (too few neighbours);
+    its value stays ``default_value`` and ``known`` False, so training targets do not change.
 
     Training: ``alpha``/``gamma`` of Q-learning; ``region_update`` moves every neighbour
     towards the new value by its kernel weight (Algorithm 2 lines 7-8), scaled by
     ``region_scale`` (1: the paper).
 
     Traced settings: bandwidth, min_weight, k_thresh, k_min, alpha, gamma, default_value,
-    ridge, ivh_tol, input_offset, input_scale, use_ivh, region_update, random_ties and
-    bandwidth_shrink are
+    ridge, ivh_tol, input_offset, input_scale, use_ivh, region_update, random_ties,
+    guess_unknown and bandwidth_shrink are
     the defaults of ``HedgerParams`` (``hedger_jax.params``), which carries them as traced
     values; with ``params=None`` these values are compile-time constants. ``max_bandwidth`` (default
     ``bandwidth``) is the largest bandwidth a ``HedgerParams`` may use: the grid index is
@@ -221,6 +225,7 @@ class HedgerConfig:
     use_ivh: bool = True
     region_update: bool = True
     random_ties: bool = False
+    guess_unknown: bool = False
     discrete_actions: Optional[Tuple[Tuple[float, ...], ...]] = None
     action_low: Tuple[float, ...] = (-1.0,)
     action_high: Tuple[float, ...] = (1.0,)
@@ -352,7 +357,8 @@ class HedgerConfig:
             raise ValueError(f"ridge: must be in (0, 1), got {self.ridge}")
         if not (0.0 <= self.ivh_tol < 1.0):
             raise ValueError(f"ivh_tol: must be in [0, 1), got {self.ivh_tol}")
-        for name in ("use_ivh", "region_update", "random_ties", "bandwidth_shrink"):
+        for name in ("use_ivh", "region_update", "random_ties", "guess_unknown",
+                     "bandwidth_shrink"):
             set_(name, bool(getattr(self, name)))
         if self.neighbour_index not in NEIGHBOUR_INDEXES:
             raise ValueError(f"neighbour_index: must be one of {NEIGHBOUR_INDEXES}, "

@@ -9,14 +9,18 @@ bounds and is never worse than the initial grid.
 
 "Don't know" handling: an unknown candidate counts as ``default_value`` (as a table
 initialised with that value would); if every evaluated candidate is unknown the greedy policy
-acts at random (``known`` is False).
+acts at random (``known`` is False), as the paper does. With ``guess_unknown`` (beyond the
+paper) it first guesses: the same search over the local fits without the hull check (at
+least ``k_min`` neighbours within the kernel are still needed). Only where those know nothing
+either is the action random. The value stays ``default_value`` and ``known`` False: the guess
+steers the policy, never a training target (``greedy_value``).
 
 Every function taking ``params`` accepts a ``HedgerParams`` (traced hyperparameters) or None
 for the config's values.
 """
 from __future__ import annotations
 
-from typing import Callable, NamedTuple, Tuple
+from typing import Any, Callable, NamedTuple, Tuple
 
 import jax
 import jax.numpy as jnp
@@ -292,9 +296,9 @@ def greedy_action_from_uniform(config: HedgerConfig, memory: Memory, state: jax.
     if config.is_discrete:
         return greedy_choice(config, memory, state, u, params)[:3]
     # Without the neighbour sets, so the search carries none through its loop.
-    return _continuous_choice(config, u, *_continuous_search(config, memory, state,
-                                                             params=params, u_tie=u[0]),
-                              params=params)
+    x, value, any_known = _continuous_search(config, memory, state, params=params, u_tie=u[0])
+    x, found = _guess_continuous(config, memory, state, params, u[0], x, any_known)
+    return _continuous_choice(config, u, x, value, any_known, found, params=params)
 
 
 def greedy_choice(config: HedgerConfig, memory: Memory, state: jax.Array, u: jax.Array,
@@ -304,30 +308,85 @@ def greedy_choice(config: HedgerConfig, memory: Memory, state: jax.Array, u: jax
     if config.is_discrete:
         actions, values, known, sets = _discrete_values(config, memory, state, params)
         n = actions.shape[0]
-        ties = values >= jnp.max(values)
-        pick = jnp.argmax(jnp.where(ties, u[:n], -1.0))
+        pick = _discrete_pick(values, u[:n])
         rand = jnp.minimum((u[n] * n).astype(jnp.int32), n - 1)
         any_known = jnp.any(known)
-        idx = jnp.where(any_known, pick, rand)
+        on = _guess_switch(config, params)
+        if on is not None:
+            def search():
+                _, g_values, g_known, _ = _discrete_values(
+                    config, memory, state, _guess_params(config, memory, params))
+                return _discrete_pick(g_values, u[:n]), jnp.any(g_known)
+
+            pick, found = _guess(on, search, pick, any_known)
+        else:
+            found = any_known
+        idx = jnp.where(found, pick, rand)
         # Every action of the set was evaluated: the chosen one's K is known either way.
         return actions[idx], values[idx], any_known, GreedySets(sets, sets[idx],
                                                                 jnp.ones((), bool))
     x, value, any_known, sets, best = _continuous_search(config, memory, state, with_aux=True,
                                                          params=params, u_tie=u[0])
-    # A random action (nothing known) was not evaluated: its K is not known.
-    return _continuous_choice(config, u, x, value, any_known, params) + (
+    x, found = _guess_continuous(config, memory, state, params, u[0], x, any_known)
+    # A random or guessed action (nothing known): its K at the memory's kernel is not known.
+    return _continuous_choice(config, u, x, value, any_known, found, params) + (
         GreedySets(sets, best, any_known),)
 
 
-def _continuous_choice(config: HedgerConfig, u: jax.Array, x, value, any_known, params=None):
-    """The search's best sample, or (nothing known) a uniformly random action from u (A,)
-    with value ``default_value``: -> (action (A,), value (), known ())."""
+def _continuous_choice(config: HedgerConfig, u: jax.Array, x, value, any_known, found,
+                       params=None):
+    """The search's best sample where ``found`` (known, or guessed), else a uniformly random
+    action from u (A,); value ``default_value`` unless ``any_known``:
+    -> (action (A,), value (), known ())."""
     low = jnp.asarray(config.action_low, jnp.float32)
     high = jnp.asarray(config.action_high, jnp.float32)
     rand = jnp.minimum(low + u * (high - low), high)
-    action = jnp.where(any_known, x[None], rand)
+    action = jnp.where(found, x[None], rand)
     default = resolve(config, params).default_value
     return action, jnp.where(any_known, value, jnp.float32(default)), any_known
+
+
+def _guess_switch(config: HedgerConfig, params):
+    """``guess_unknown`` as a bool () switch, or None where it is a constant False (the same
+    program as without the option)."""
+    on = resolve(config, params).guess_unknown
+    if isinstance(on, (bool, np.bool_)) and not on:
+        return None
+    return jnp.asarray(on, bool)
+
+
+def _guess_params(config: HedgerConfig, memory: Memory, params):
+    """The settings the guess reads the fits with: the memory's kernel without the hull
+    check."""
+    return resolve(config, with_data_bandwidth(config, memory, params))._replace(use_ivh=False)
+
+
+def _guess(on, search, choice, found):
+    """``search() -> (choice, found)`` where nothing is found and the switch ``on`` holds
+    (a ``lax.cond``: a known state pays nothing)."""
+    return jax.lax.cond(~found & on, lambda _: search(), lambda _: (choice, found), None)
+
+
+def _guess_continuous(config: HedgerConfig, memory: Memory, state: jax.Array, params,
+                      u_tie, x, any_known):
+    """(x, found): the search's best sample, or where it knew nothing the guess (module
+    doc) with ``guess_unknown``; found: whether x is known or guessed."""
+    on = _guess_switch(config, params)
+    if on is None:
+        return x, any_known
+
+    def search():
+        gx, _, g_known = _continuous_search(config, memory, state, u_tie=u_tie,
+                                            params=_guess_params(config, memory, params))
+        return gx, g_known
+
+    return _guess(on, search, x, any_known)
+
+
+def _discrete_pick(values: jax.Array, u: jax.Array) -> jax.Array:
+    """The best of the discrete actions' values (n,), ties broken by the draws u (n,)."""
+    ties = values >= jnp.max(values)
+    return jnp.argmax(jnp.where(ties, u, -1.0))
 
 
 def greedy_action(config: HedgerConfig, memory: Memory, state: jax.Array, key: jax.Array,
@@ -336,10 +395,10 @@ def greedy_action(config: HedgerConfig, memory: Memory, state: jax.Array, key: j
 
     Ties among the best discrete actions are broken at random, among the continuous
     search's initial samples with ``random_ties`` (else the first); when nothing is known the
-    action is uniformly random (from the set, or in the box), its value ``default_value``,
-    and ``known`` is False. The randomness is one ``jax.random.uniform`` draw of
-    ``greedy_draws(config)`` numbers from ``key``. params: ``HedgerParams``, or None for the
-    config's values.
+    action is uniformly random (from the set, or in the box; with ``guess_unknown`` guessed
+    first, module doc), its value ``default_value``, and ``known`` is False. The randomness
+    is one ``jax.random.uniform`` draw of ``greedy_draws(config)`` numbers from ``key``.
+    params: ``HedgerParams``, or None for the config's values.
     """
     expect("state", state, (config.state_dim,))
     expect_key("key", key)

@@ -26,11 +26,11 @@ FIELDS = ("bandwidth", "min_weight", "kernel_k", "kernel_range", "bandwidth_k",
           "k_thresh",
           "k_min", "alpha", "gamma", "default_value",
           "ridge", "ivh_tol", "input_offset", "input_scale", "use_ivh", "region_update",
-          "random_ties", "epsilon", "noise_std")
+          "random_ties", "guess_unknown", "epsilon", "noise_std")
 #: The fields whose defaults come from ``RunConfig``, not ``HedgerConfig``.
 RUN_FIELDS = ("epsilon", "noise_std")
 #: The boolean switches.
-_BOOLS = ("use_ivh", "region_update", "random_ties", "bandwidth_shrink")
+_BOOLS = ("use_ivh", "region_update", "random_ties", "guess_unknown", "bandwidth_shrink")
 #: The fields the selection radius k_thresh is derived from.
 _RADIUS_FIELDS = ("bandwidth", "min_weight", "kernel_k", "kernel_range", "bandwidth_k")
 #: The (d,) vectors; every other field is a scalar.
@@ -52,6 +52,8 @@ class HedgerParams(NamedTuple):
     fit and the hull test. input_offset, input_scale: (d,) the query scaling
     z = (concat(s, a) - offset) * scale. use_ivh, region_update: the paper's ablation
     switches (bool). random_ties: the continuous greedy search breaks ties at random (bool).
+    guess_unknown: where no candidate is known, the greedy action is guessed from the fits
+    without the hull check before acting at random (bool; ``hedger_jax.greedy``).
     bandwidth_k, bandwidth_shrink: the width read from the memory (int32, bool;
     ``hedger_jax.data_bandwidth``). epsilon, noise_std: exploration of the training runs.
     """
@@ -76,6 +78,7 @@ class HedgerParams(NamedTuple):
     use_ivh: Any
     region_update: Any
     random_ties: Any
+    guess_unknown: Any
     epsilon: Any
     noise_std: Any
 

@@ -496,3 +496,78 @@ def test_random_ties_is_a_traced_switch():
         lambda k: greedy_action(CFG_C, mem, s0, k, p)[0])(keys)))(both)
     acts = np.asarray(acts)[..., 0]
     assert np.all(acts[0] == -1.0) and len(np.unique(acts[1])) >= 8
+
+
+# ------------------------------------------------------------------ guess_unknown
+def _both_switches(config, **kw):
+    """HedgerParams with guess_unknown False and True stacked on a leading axis of 2."""
+    from hedger_jax import HedgerParams
+    return jax.tree_util.tree_map(lambda *x: jnp.stack([jnp.asarray(v) for v in x]),
+                                  HedgerParams.create(config, guess_unknown=False, **kw),
+                                  HedgerParams.create(config, guess_unknown=True, **kw))
+
+
+def _greedy_both(config, mem, s, keys, both):
+    """greedy_action over keys for each of the two stacked settings, one program."""
+    return jax.jit(jax.vmap(lambda p: jax.vmap(
+        lambda k: greedy_action(config, mem, s, k, p))(keys)))(both)
+
+
+def test_guess_unknown_continuous_follows_the_fit_without_the_hull_check():
+    """s = 0.64 lies beyond the stored rows (0.42 ... 0.58) but within the kernel: every
+    candidate has neighbours, none is inside their hull (float64 reference). Off: random
+    (the paper). On: the search over the fits without the hull check, which the reference
+    puts at a = 0.3; the value stays the default and ``known`` False."""
+    q = lambda s, a: 1.0 - (a - 0.3) ** 2 + 0.5 * s  # noqa: E731
+    Z, V, mem = _continuous_memory(q, seed=5)
+    grid = np.linspace(-1.0, 1.0, 201)
+    ivh = [_ref(CFG_C, Z, V, np.array([0.64, a])) for a in grid]
+    assert not any(r.known for r in ivh) and min(r.n for r in ivh) >= CFG_C.k_min
+    no_ivh = [ref_predict(Z, V, len(Z), np.array([0.64, a]), bandwidth=CFG_C.bandwidth,
+                          k_thresh=default_k_thresh(CFG_C.bandwidth, CFG_C.min_weight),
+                          k_min=CFG_C.k_min, max_neighbours=CFG_C.max_neighbours,
+                          use_ivh=False) for a in grid]
+    assert all(r.known for r in no_ivh)
+    ref_best = grid[int(np.argmax([r.value for r in no_ivh]))]
+    acts, vals, known = _greedy_both(CFG_C, mem, jnp.asarray(f32([0.64])), KEYS8,
+                                     _both_switches(CFG_C))
+    acts = np.asarray(acts)[..., 0]
+    assert not np.any(np.asarray(known)) and np.all(np.asarray(vals) == CFG_C.default_value)
+    assert len(np.unique(acts[0])) >= 7                       # off: uniformly random
+    assert np.all(acts[1] == acts[1][0]) and abs(acts[1][0] - ref_best) <= 0.02, acts[1]
+    r_at = ref_predict(Z, V, len(Z), np.array([0.64, float(acts[1][0])]),
+                       bandwidth=CFG_C.bandwidth,
+                       k_thresh=default_k_thresh(CFG_C.bandwidth, CFG_C.min_weight),
+                       k_min=CFG_C.k_min, max_neighbours=CFG_C.max_neighbours, use_ivh=False)
+    assert r_at.value >= max(r.value for r in no_ivh) - 1e-3
+    # Where something is known the switch changes nothing.
+    known_acts = np.asarray(_greedy_both(CFG_C, mem, jnp.asarray(f32([0.5])), KEYS8,
+                                         _both_switches(CFG_C))[0])
+    np.testing.assert_array_equal(known_acts[0], known_acts[1])
+
+
+def test_guess_unknown_discrete_takes_the_best_fit_without_the_hull_check():
+    """States beyond the stored square [0.4, 0.6]^2 but within the kernel: no action is
+    inside its neighbours' hull; the fits without the check (float64 reference) rank +1
+    first. On: +1 for every key; off: all three actions."""
+    fns = (lambda s: 0.2 + 0 * s[:, 0], lambda s: 0.5 + 0.05 * s[:, 1],
+           lambda s: 1.0 + 0.1 * s[:, 0])
+    S, A, V, mem = _discrete_memory(fns, seed=6)
+    s = f32([0.66, 0.5])
+    Z = np.concatenate([S, A], 1).astype(np.float64)
+    zq = [np.concatenate([s, a]).astype(np.float64) for a in ACTS]
+    assert not any(_ref(CFG_D, Z, V, z).known for z in zq)
+    no_ivh = [ref_predict(Z, V, len(Z), z, bandwidth=CFG_D.bandwidth,
+                          k_thresh=default_k_thresh(CFG_D.bandwidth, CFG_D.min_weight),
+                          k_min=CFG_D.k_min, max_neighbours=CFG_D.max_neighbours,
+                          use_ivh=False) for z in zq]
+    assert all(r.known for r in no_ivh) and int(np.argmax([r.value for r in no_ivh])) == 2
+    acts, vals, known = _greedy_both(CFG_D, mem, jnp.asarray(s), KEYS, _both_switches(CFG_D))
+    acts = np.asarray(acts)[..., 0]
+    assert not np.any(np.asarray(known)) and np.all(np.asarray(vals) == CFG_D.default_value)
+    assert set(acts[0].tolist()) == {-1.0, 0.0, 1.0}
+    assert np.all(acts[1] == 1.0)
+    # Without neighbours (far from all data) the guess knows nothing either: random.
+    far, _, _ = _greedy_both(CFG_D, mem, jnp.asarray(f32([3.0, 3.0])), KEYS,
+                             _both_switches(CFG_D))
+    assert set(np.asarray(far)[1, :, 0].tolist()) == {-1.0, 0.0, 1.0}
