@@ -51,12 +51,12 @@ CORRIDOR_PARAMS = (("train_x_max", 0.5),)
 #: observation is scaled only from its bounds (no per-dimension weights).
 ADAPTIVE_PARAMS = dict(hedger_jax.ADAPTIVE)
 ADAPTIVE_CONTINUOUS_PARAMS = dict(hedger_jax.ADAPTIVE_CONTINUOUS, action_scale=0.5)
-#: The corridor's adaptive line: a wider span, 24 of the 1024 pooled points (m = 4 leaves its
+#: The corridor's adaptive line: a wider span, 48 of the 1024 pooled points (m = 4 leaves its
 #: four-dimensional inputs "don't know" almost everywhere); where the greedy policy knows no
 #: action it guesses from the fits (``guess_unknown``: random actions crashed it); alpha = 1
 #: (the kernel averages; stored values no longer lag their targets). docs/adaptive-kernel.md,
 #: Corridor.
-CORRIDOR_ADAPTIVE_PARAMS = dict(hedger_jax.ADAPTIVE_CONTINUOUS, bandwidth_k=24,
+CORRIDOR_ADAPTIVE_PARAMS = dict(hedger_jax.ADAPTIVE_CONTINUOUS, bandwidth_k=48,
                                 guess_unknown=True, alpha=1.0)
 
 
