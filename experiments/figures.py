@@ -54,10 +54,11 @@ ADAPTIVE_CONTINUOUS_PARAMS = dict(hedger_jax.ADAPTIVE_CONTINUOUS, action_scale=0
 #: The corridor's adaptive line: a wider span, 48 of the 1024 pooled points (m = 4 leaves its
 #: four-dimensional inputs "don't know" almost everywhere); where the greedy policy knows no
 #: action it guesses from the fits (``guess_unknown``: random actions crashed it); alpha = 1
-#: (the kernel averages; stored values no longer lag their targets). docs/adaptive-kernel.md,
-#: Corridor.
+#: (the kernel averages; stored values no longer lag their targets); a soft greedy choice
+#: (``greedy_temperature``: near alignment the turn commands' values differ by less than the
+#: fits' noise). docs/adaptive-kernel.md, Corridor.
 CORRIDOR_ADAPTIVE_PARAMS = dict(hedger_jax.ADAPTIVE_CONTINUOUS, bandwidth_k=48,
-                                guess_unknown=True, alpha=1.0)
+                                guess_unknown=True, alpha=1.0, greedy_temperature=0.3)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -94,7 +94,8 @@ _TRACED_FIELDS = ("bandwidth", "min_weight", "kernel_k", "kernel_range", "bandwi
                   "value_eps",
                   "k_thresh", "k_min", "alpha", "gamma",
                   "default_value", "ridge", "ivh_tol", "input_offset", "input_scale", "use_ivh",
-                  "region_update", "random_ties", "guess_unknown", "epsilon", "noise_std")
+                  "region_update", "random_ties", "guess_unknown", "greedy_temperature",
+                  "epsilon", "noise_std")
 
 
 def selection_radius(bandwidth, min_weight, kernel_k=0, kernel_range=1.0, bandwidth_k=0):
@@ -162,6 +163,12 @@ class HedgerConfig:
     ``guess_unknown`` (beyond the paper) it is first chosen by the same local fits without
     the hull check, and is random only where those too know nothing (too few neighbours);
     its value stays ``default_value`` and ``known`` False, so training targets do not change.
+    With ``greedy_temperature`` = T > 0 (beyond the paper; continuous actions only) the
+    greedy action is the mean of the search's samples weighted by exp((y - y_best) / T), y
+    the values as the fit sees them (log-scale with ``value_eps``): where the actions' values
+    differ by less than T the action is their weighted mean, not the pick of the fits'
+    noise; the value (the training target) is the samples' values averaged with the same
+    weights.
 
     Training: ``alpha``/``gamma`` of Q-learning; ``region_update`` moves every neighbour
     towards the new value by its kernel weight (Algorithm 2 lines 7-8), scaled by
@@ -169,7 +176,7 @@ class HedgerConfig:
 
     Traced settings: bandwidth, min_weight, k_thresh, k_min, alpha, gamma, default_value,
     ridge, ivh_tol, input_offset, input_scale, use_ivh, region_update, random_ties,
-    guess_unknown and bandwidth_shrink are
+    guess_unknown, greedy_temperature and bandwidth_shrink are
     the defaults of ``HedgerParams`` (``hedger_jax.params``), which carries them as traced
     values; with ``params=None`` these values are compile-time constants. ``max_bandwidth`` (default
     ``bandwidth``) is the largest bandwidth a ``HedgerParams`` may use: the grid index is
@@ -226,6 +233,7 @@ class HedgerConfig:
     region_update: bool = True
     random_ties: bool = False
     guess_unknown: bool = False
+    greedy_temperature: float = 0.0
     discrete_actions: Optional[Tuple[Tuple[float, ...], ...]] = None
     action_low: Tuple[float, ...] = (-1.0,)
     action_high: Tuple[float, ...] = (1.0,)
@@ -297,6 +305,10 @@ class HedgerConfig:
         if not (math.isfinite(self.value_eps) and self.value_eps >= 0.0):
             raise ValueError(f"value_eps: must be a finite number >= 0, got {self.value_eps}")
         set_("value_eps", float(self.value_eps))
+        if not (math.isfinite(self.greedy_temperature) and self.greedy_temperature >= 0.0):
+            raise ValueError(f"greedy_temperature: must be a finite number >= 0, got "
+                             f"{self.greedy_temperature}")
+        set_("greedy_temperature", float(self.greedy_temperature))
         if self.k_thresh is None:
             set_("k_thresh", selection_radius(self.bandwidth, self.min_weight, self.kernel_k,
                                               self.kernel_range, self.bandwidth_k))
@@ -345,6 +357,10 @@ class HedgerConfig:
             if not all(math.isfinite(x) for a in acts for x in a):
                 raise ValueError("discrete_actions: values must be finite")
             set_("discrete_actions", acts)
+            if self.greedy_temperature > 0:
+                raise ValueError("greedy_temperature: must be 0 with discrete actions (a "
+                                 "weighted mean of them is not one of them), got "
+                                 f"{self.greedy_temperature}")
         if self.greedy_samples < 3:
             raise ValueError(f"greedy_samples: must be >= 3, got {self.greedy_samples}")
         if self.greedy_iters < 0:

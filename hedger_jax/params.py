@@ -26,7 +26,7 @@ FIELDS = ("bandwidth", "min_weight", "kernel_k", "kernel_range", "bandwidth_k",
           "k_thresh",
           "k_min", "alpha", "gamma", "default_value",
           "ridge", "ivh_tol", "input_offset", "input_scale", "use_ivh", "region_update",
-          "random_ties", "guess_unknown", "epsilon", "noise_std")
+          "random_ties", "guess_unknown", "greedy_temperature", "epsilon", "noise_std")
 #: The fields whose defaults come from ``RunConfig``, not ``HedgerConfig``.
 RUN_FIELDS = ("epsilon", "noise_std")
 #: The boolean switches.
@@ -54,6 +54,10 @@ class HedgerParams(NamedTuple):
     switches (bool). random_ties: the continuous greedy search breaks ties at random (bool).
     guess_unknown: where no candidate is known, the greedy action is guessed from the fits
     without the hull check before acting at random (bool; ``hedger_jax.greedy``).
+    greedy_temperature: continuous actions only; > 0 makes the greedy action the mean of
+    the search's samples weighted by exp((y - y_best) / greedy_temperature), y the values as
+    the fit sees them (``to_fit_space``), and its value their values' mean with the same
+    weights; 0 the best sample and its value (the paper).
     bandwidth_k, bandwidth_shrink: the width read from the memory (int32, bool;
     ``hedger_jax.data_bandwidth``). epsilon, noise_std: exploration of the training runs.
     """
@@ -79,6 +83,7 @@ class HedgerParams(NamedTuple):
     region_update: Any
     random_ties: Any
     guess_unknown: Any
+    greedy_temperature: Any
     epsilon: Any
     noise_std: Any
 
@@ -197,6 +202,11 @@ def check_params(config: HedgerConfig, params: HedgerParams) -> HedgerParams:
          "and kernel_k: choose one data-chosen width (one for the memory, or one per "
          "query), both > 0")
     _bad("value_eps", p["value_eps"], p["value_eps"] >= 0, "must be >= 0")
+    _bad("greedy_temperature", p["greedy_temperature"], p["greedy_temperature"] >= 0,
+         "must be >= 0")
+    if config.is_discrete:
+        _bad("greedy_temperature", p["greedy_temperature"], p["greedy_temperature"] == 0,
+             "must be 0 with discrete actions (a weighted mean of them is not one of them)")
     _bad("region_scale", p["region_scale"], (p["region_scale"] >= 0) & (p["region_scale"] <= 1),
          "must be in [0, 1]")
     for name in ("alpha", "gamma", "epsilon"):

@@ -571,3 +571,108 @@ def test_guess_unknown_discrete_takes_the_best_fit_without_the_hull_check():
     far, _, _ = _greedy_both(CFG_D, mem, jnp.asarray(f32([3.0, 3.0])), KEYS,
                              _both_switches(CFG_D))
     assert set(np.asarray(far)[1, :, 0].tolist()) == {-1.0, 0.0, 1.0}
+
+
+# ------------------------------------------------------------------ greedy_temperature
+#: CFG_C without refinements: the search's samples are the 11-point grid, so the weighted
+#: mean has a closed form over it.
+CFG_C0 = HedgerConfig(1, 1, capacity=256, bandwidth=0.1, max_neighbours=32, action_low=(-1.0,),
+                      action_high=(1.0,), greedy_samples=11, greedy_iters=0)
+
+
+def _soft_ref(values, temperature, grid, raw=None):
+    """Float64 reference: the means of the grid and of its values (``raw``, else
+    ``values``) weighted by exp((v - max v) / T)."""
+    v = np.asarray(values, np.float64)
+    raw = v if raw is None else np.asarray(raw, np.float64)
+    w = np.exp((v - v.max()) / temperature)
+    return float((w * grid).sum() / w.sum()), float((w * raw).sum() / w.sum())
+
+
+def test_greedy_temperature_takes_the_weighted_mean_of_the_samples():
+    """A flat-topped Q (values within 0.02 over the actions): the greedy action is the grid's
+    mean weighted by exp((Q - max Q) / T) and its value the values' mean with those weights,
+    against a float64 reference of the fits; T = 0 is the best sample and its value (the
+    paper); greedy_value (training targets) agrees. One program, the temperature vmapped."""
+    from hedger_jax import HedgerParams
+    from hedger_jax.greedy import search_grid
+    q = lambda s, a: 1.0 - 0.02 * (a - 0.3) ** 2 + 0.1 * s  # noqa: E731
+    Z, V, mem = _continuous_memory(q, seed=8)
+    grid = np.asarray(search_grid(-1.0, 1.0, 11), np.float64)
+    refs = [_ref(CFG_C0, Z, V, np.array([0.5, a])) for a in grid]
+    assert all(r.known for r in refs)
+    ref_v = np.array([r.value for r in refs])
+    temps = (0.0, 0.002, 0.01, 0.05)
+    stack = jax.tree_util.tree_map(
+        lambda *x: jnp.stack([jnp.asarray(v) for v in x]),
+        *[HedgerParams.create(CFG_C0, greedy_temperature=t) for t in temps])
+    acts, vals, known = jax.jit(jax.vmap(lambda p: greedy_action(
+        CFG_C0, mem, jnp.asarray(f32([0.5])), KEYS[0], p)))(stack)
+    acts, vals = np.asarray(acts)[:, 0], np.asarray(vals)
+    assert np.all(np.asarray(known))
+    assert acts[0] == grid[int(np.argmax(ref_v))] and vals[0] == pytest.approx(ref_v.max(),
+                                                                                rel=1e-5)
+    for a, v, t in zip(acts[1:], vals[1:], temps[1:]):
+        want_a, want_v = _soft_ref(ref_v, t, grid)
+        assert a == pytest.approx(want_a, abs=2e-3) and v == pytest.approx(want_v, rel=1e-5)
+    # Softer means closer to the middle of the nearly flat range and a lower value.
+    assert abs(acts[3]) < abs(acts[2]) < abs(acts[1]) < abs(acts[0])
+    assert vals[3] < vals[2] < vals[1] < vals[0]
+    targets = jax.jit(jax.vmap(lambda p: greedy_value(CFG_C0, mem, jnp.asarray(f32([0.5])),
+                                                      p)[0]))(stack)
+    np.testing.assert_allclose(np.asarray(targets), vals, rtol=1e-6)
+
+
+def test_greedy_temperature_weighs_values_as_the_fit_sees_them():
+    """With value_eps > 0 the weights compare log-scale values: search_1d's soft choice over
+    f(x) = 10 * 0.99^(60 + 20 x^2) against a float64 reference in log1p(f / eps) space (where
+    one step of 0.99 is worth about 0.01 whatever the value's size)."""
+    from hedger_jax import HedgerParams
+    from hedger_jax.greedy import search_1d, search_grid
+    from hedger_jax.params import to_fit_space
+    p = HedgerParams.create(CFG_C, value_eps=1e-6)
+    f = lambda x: (10.0 * 0.99 ** (60.0 + 20.0 * (x - 0.2) ** 2), jnp.ones((), bool))  # noqa: E731
+    grid = np.asarray(search_grid(-1.0, 1.0, 11), np.float64)
+    q = 10.0 * 0.99 ** (60.0 + 20.0 * (grid - 0.2) ** 2)
+    y = np.log1p(q / 1e-6)
+    for t in (0.01, 0.05):
+        x, fx, _ = jax.jit(lambda t: search_1d(f, -1.0, 1.0, 11, 0, 1e-3, soft=(
+            t, lambda v: to_fit_space(p, v))))(jnp.float32(t))
+        want_x, want_f = _soft_ref(y, t, grid, raw=q)
+        assert float(x) == pytest.approx(want_x, abs=1e-4)
+        assert float(fx) == pytest.approx(want_f, rel=1e-5)
+
+
+def test_greedy_temperature_near_zero_is_the_search():
+    """With refinements, a tiny temperature gives the search's best sample and value (to
+    rounding); a wide one a lower value; greedy_choice reports the chosen action's neighbour
+    set as unknown (it is a mean of samples, not one of them)."""
+    from hedger_jax import HedgerParams
+    from hedger_jax.greedy import greedy_choice
+    Z, V, mem = _continuous_memory(lambda s, a: 1.0 - (a - 0.3) ** 2 + 0.1 * s)
+    s0 = jnp.asarray(f32([0.5]))
+    plain = greedy_action(CFG_C, mem, s0, KEYS[0])
+    tiny = HedgerParams.create(CFG_C, greedy_temperature=1e-12)
+    soft = HedgerParams.create(CFG_C, greedy_temperature=0.5)
+    # (equal to rounding: samples whose values tie the best share the weight)
+    a_tiny, v_tiny, _ = greedy_action(CFG_C, mem, s0, KEYS[0], tiny)
+    assert float(a_tiny[0]) == pytest.approx(float(plain[0][0]), abs=1e-5)
+    assert float(v_tiny) == pytest.approx(float(plain[1]), rel=1e-6)
+    a_soft, v_soft, _ = greedy_action(CFG_C, mem, s0, KEYS[0], soft)
+    assert abs(float(a_soft[0]) - 0.3) > 0.01 and float(v_soft) < float(plain[1])
+    u = jnp.full((1,), 0.5, jnp.float32)
+    assert bool(greedy_choice(CFG_C, mem, s0, u, tiny)[3].has_chosen) is False
+    assert bool(greedy_choice(CFG_C, mem, s0, u)[3].has_chosen) is True
+
+
+def test_greedy_temperature_is_checked():
+    from hedger_jax import HedgerParams
+    from hedger_jax.params import InvalidParamsError
+    with pytest.raises(InvalidParamsError, match="greedy_temperature: must be >= 0"):
+        HedgerParams.create(CFG_C, greedy_temperature=-0.1)
+    with pytest.raises(InvalidParamsError, match="greedy_temperature: must be 0 with discrete"):
+        HedgerParams.create(CFG_D, greedy_temperature=0.1)
+    with pytest.raises(ValueError, match="greedy_temperature: must be 0 with discrete"):
+        HedgerConfig(2, 1, discrete_actions=ACTS, greedy_temperature=0.1)
+    with pytest.raises(ValueError, match="greedy_temperature: must be a finite number"):
+        HedgerConfig(1, 1, greedy_temperature=float("nan"))
