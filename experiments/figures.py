@@ -56,9 +56,13 @@ ADAPTIVE_CONTINUOUS_PARAMS = dict(hedger_jax.ADAPTIVE_CONTINUOUS, action_scale=0
 #: action it guesses from the fits (``guess_unknown``: random actions crashed it); alpha = 1
 #: (the kernel averages; stored values no longer lag their targets); a soft greedy choice
 #: (``greedy_temperature``: near alignment the turn commands' values differ by less than the
-#: fits' noise). docs/adaptive-kernel.md, Corridor.
+#: fits' noise); calibrated values far from the goal (``replay_floor`` and
+#: ``clip_to_neighbours``: without them the first runs' "don't know" zeros dragged the values
+#: there to 1e-5 of the truth) and a hull check widened by half (``ivh_tol=0.5``: the
+#: controller's runs leave each state one action). docs/adaptive-kernel.md, Corridor.
 CORRIDOR_ADAPTIVE_PARAMS = dict(hedger_jax.ADAPTIVE_CONTINUOUS, bandwidth_k=48,
-                                guess_unknown=True, alpha=1.0, greedy_temperature=0.3)
+                                guess_unknown=True, alpha=1.0, greedy_temperature=0.3,
+                                replay_floor=True, clip_to_neighbours=True, ivh_tol=0.5)
 
 
 @dataclasses.dataclass(frozen=True)

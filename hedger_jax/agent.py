@@ -39,12 +39,13 @@ from hedger_jax.greedy import (greedy_action, greedy_action_from_uniform, greedy
                                greedy_choice, greedy_draws)
 from hedger_jax.loops import masked_fori_loop
 from hedger_jax.memory import Memory, init_memory, refresh_index
-from hedger_jax.params import HedgerParams
+from hedger_jax.params import HedgerParams, resolve
 from hedger_jax.validation import expect_key
 from hedger_jax.replay_cache import (REUSE_MIN_CAPACITY, StepNeighbours, missing, record_shapes,
                                      replay_sets)
 from hedger_jax.replay_cache import usable as replay_cache_usable
-from hedger_jax.train import Transition, train_episode, train_step
+from hedger_jax.train import (Transition, next_floor, replay_floor_on, train_episode,
+                              train_step)
 
 #: ``RunConfig.exploration`` choices.
 EXPLORATION = ("random", "gaussian")
@@ -352,18 +353,27 @@ def train_prefix(config: HedgerConfig, memory: Memory, episode: Transition, leng
     """
     params = with_data_bandwidth(config, memory, params)     # the rollout's width
     width = int(episode.valid.shape[0])
+    p = resolve(config, params)
 
-    def body(i, mem, active):
+    def body(i, carry, active):
+        mem, floor = carry if floored else (carry, None)
         t = jnp.maximum(length - 1 - i, 0)
         step = jax.tree_util.tree_map(lambda x: x[t], episode)
         cached = None
         if neighbours is not None:
             cached = replay_sets(neighbours, t, length) + (width,)
-        mem, _ = train_step(config, mem, step._replace(valid=step.valid & active), cached, params)
-        return mem
+        valid = step.valid & active
+        mem, info = train_step(config, mem, step._replace(valid=valid), cached, params, floor)
+        if not floored:
+            return mem
+        return mem, jnp.where(active, next_floor(p, info, valid), floor)
 
     # A plain fori_loop under vmap would select between old and new memories after every step.
-    return masked_fori_loop(length, body, memory)
+    # Without replay_floor the carry is the memory alone: the paper's program.
+    floored = replay_floor_on(p)
+    if not floored:
+        return masked_fori_loop(length, body, memory)
+    return masked_fori_loop(length, body, (memory, jnp.float32(-jnp.inf)))[0]
 
 
 #: Default number of evaluation episodes stepped together (``evaluate_policy``'s ``lanes``):

@@ -95,7 +95,7 @@ _TRACED_FIELDS = ("bandwidth", "min_weight", "kernel_k", "kernel_range", "bandwi
                   "k_thresh", "k_min", "alpha", "gamma",
                   "default_value", "ridge", "ivh_tol", "input_offset", "input_scale", "use_ivh",
                   "region_update", "random_ties", "guess_unknown", "greedy_temperature",
-                  "epsilon", "noise_std")
+                  "clip_to_neighbours", "replay_floor", "epsilon", "noise_std")
 
 
 def selection_radius(bandwidth, min_weight, kernel_k=0, kernel_range=1.0, bandwidth_k=0):
@@ -170,13 +170,21 @@ class HedgerConfig:
     noise; the value (the training target) is the samples' values averaged with the same
     weights.
 
+    With ``clip_to_neighbours`` (beyond the paper) a known prediction is clipped to the
+    range of its neighbours' stored values (as the fit sees them): the fit interpolates
+    and never extrapolates a value, so a backup's max cannot feed on its own overshoots.
+
     Training: ``alpha``/``gamma`` of Q-learning; ``region_update`` moves every neighbour
     towards the new value by its kernel weight (Algorithm 2 lines 7-8), scaled by
-    ``region_scale`` (1: the paper).
+    ``region_scale`` (1: the paper). With ``replay_floor`` (beyond the paper) the reverse
+    replay of an episode takes max_a' Q(s', a') to be at least the value it has just stored
+    for s' with the action the episode took there (a max is at least any one of its terms),
+    so a "don't know" or a low fit on the way cannot cut the reward off from the earlier
+    steps.
 
     Traced settings: bandwidth, min_weight, k_thresh, k_min, alpha, gamma, default_value,
     ridge, ivh_tol, input_offset, input_scale, use_ivh, region_update, random_ties,
-    guess_unknown, greedy_temperature and bandwidth_shrink are
+    guess_unknown, greedy_temperature, clip_to_neighbours, replay_floor and bandwidth_shrink are
     the defaults of ``HedgerParams`` (``hedger_jax.params``), which carries them as traced
     values; with ``params=None`` these values are compile-time constants. ``max_bandwidth`` (default
     ``bandwidth``) is the largest bandwidth a ``HedgerParams`` may use: the grid index is
@@ -234,6 +242,8 @@ class HedgerConfig:
     random_ties: bool = False
     guess_unknown: bool = False
     greedy_temperature: float = 0.0
+    clip_to_neighbours: bool = False
+    replay_floor: bool = False
     discrete_actions: Optional[Tuple[Tuple[float, ...], ...]] = None
     action_low: Tuple[float, ...] = (-1.0,)
     action_high: Tuple[float, ...] = (1.0,)
@@ -374,7 +384,7 @@ class HedgerConfig:
         if not (0.0 <= self.ivh_tol < 1.0):
             raise ValueError(f"ivh_tol: must be in [0, 1), got {self.ivh_tol}")
         for name in ("use_ivh", "region_update", "random_ties", "guess_unknown",
-                     "bandwidth_shrink"):
+                     "bandwidth_shrink", "clip_to_neighbours", "replay_floor"):
             set_(name, bool(getattr(self, name)))
         if self.neighbour_index not in NEIGHBOUR_INDEXES:
             raise ValueError(f"neighbour_index: must be one of {NEIGHBOUR_INDEXES}, "

@@ -26,11 +26,13 @@ FIELDS = ("bandwidth", "min_weight", "kernel_k", "kernel_range", "bandwidth_k",
           "k_thresh",
           "k_min", "alpha", "gamma", "default_value",
           "ridge", "ivh_tol", "input_offset", "input_scale", "use_ivh", "region_update",
-          "random_ties", "guess_unknown", "greedy_temperature", "epsilon", "noise_std")
+          "random_ties", "guess_unknown", "greedy_temperature", "clip_to_neighbours",
+          "replay_floor", "epsilon", "noise_std")
 #: The fields whose defaults come from ``RunConfig``, not ``HedgerConfig``.
 RUN_FIELDS = ("epsilon", "noise_std")
 #: The boolean switches.
-_BOOLS = ("use_ivh", "region_update", "random_ties", "guess_unknown", "bandwidth_shrink")
+_BOOLS = ("use_ivh", "region_update", "random_ties", "guess_unknown", "bandwidth_shrink",
+          "clip_to_neighbours", "replay_floor")
 #: The fields the selection radius k_thresh is derived from.
 _RADIUS_FIELDS = ("bandwidth", "min_weight", "kernel_k", "kernel_range", "bandwidth_k")
 #: The (d,) vectors; every other field is a scalar.
@@ -58,6 +60,9 @@ class HedgerParams(NamedTuple):
     the search's samples weighted by exp((y - y_best) / greedy_temperature), y the values as
     the fit sees them (``to_fit_space``), and its value their values' mean with the same
     weights; 0 the best sample and its value (the paper).
+    clip_to_neighbours: a known prediction is clipped to its neighbours' stored values' range
+    (bool). replay_floor: the reverse replay takes max_a' Q(s', a') to be at least the value
+    it has just stored for the next step (bool; ``hedger_jax.train``).
     bandwidth_k, bandwidth_shrink: the width read from the memory (int32, bool;
     ``hedger_jax.data_bandwidth``). epsilon, noise_std: exploration of the training runs.
     """
@@ -84,6 +89,8 @@ class HedgerParams(NamedTuple):
     random_ties: Any
     guess_unknown: Any
     greedy_temperature: Any
+    clip_to_neighbours: Any
+    replay_floor: Any
     epsilon: Any
     noise_std: Any
 

@@ -5,6 +5,7 @@ from typing import NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from hedger_jax.config import HedgerConfig
 from hedger_jax.data_bandwidth import with_data_bandwidth
@@ -60,12 +61,26 @@ def predict_from_neighbours(config: HedgerConfig, memory: Memory, z: jax.Array,
     p = resolve(config, params)
     w = kernel_weights(sqdist, kernel_width(p, sqdist, nb.mask), nb.mask)
     fit = local_fit_columns(zt, y, w, nb.mask, ridge=p.ridge, ivh_tol=p.ivh_tol)
-    fit = fit._replace(value=from_fit_space(p, fit.value))
+    fit = fit._replace(value=from_fit_space(p, clip_to_neighbour_values(p, fit.value, y,
+                                                                        nb.mask)))
     count = jnp.sum(nb.mask).astype(jnp.int32)
     known = (count >= p.k_min) & jnp.isfinite(fit.value)
     known = flag(p.use_ivh, known & fit.inside, known)
     value = jnp.where(known, fit.value, jnp.float32(p.default_value))
     return Prediction(value, known, count, nb.indices, w, nb.mask)
+
+
+def clip_to_neighbour_values(p: HedgerParams, value: jax.Array, y: jax.Array,
+                             mask: jax.Array) -> jax.Array:
+    """The fit's value () clipped to [min, max] of the neighbours' stored values y (k,)
+    where mask (k,) holds, with ``clip_to_neighbours``; unchanged without (a constant False:
+    not in the program). No neighbours: unchanged (the prediction is not known anyway)."""
+    if isinstance(p.clip_to_neighbours, (bool, np.bool_)) and not p.clip_to_neighbours:
+        return value
+    lo = jnp.min(jnp.where(mask, y, jnp.inf))
+    hi = jnp.max(jnp.where(mask, y, -jnp.inf))
+    clipped = jnp.where(jnp.any(mask), jnp.clip(value, lo, hi), value)
+    return jnp.where(jnp.asarray(p.clip_to_neighbours, bool), clipped, value)
 
 
 def kernel_width(p: HedgerParams, sqdist: jax.Array, mask: jax.Array) -> jax.Array:

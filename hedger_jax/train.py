@@ -5,6 +5,7 @@ from typing import NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from hedger_jax.config import HedgerConfig
 from hedger_jax.data_bandwidth import with_data_bandwidth
@@ -71,7 +72,7 @@ def region_update(memory: Memory, indices: jax.Array, weights: jax.Array, mask: 
 
 
 def train_step(config: HedgerConfig, memory: Memory, transition: Transition, cached=None,
-               params: Optional[HedgerParams] = None):
+               params: Optional[HedgerParams] = None, q_floor=None):
     """Algorithm 2 for one experience: transition (fields as ``Transition``, no leading
     axis) -> (memory, ``TrainInfo``). Jittable, vmappable.
 
@@ -86,6 +87,8 @@ def train_step(config: HedgerConfig, memory: Memory, transition: Transition, cac
     cached: optional neighbour sets found while acting (``replay_cache.replay_sets``'s result
     and the window width), used instead of searching where usable: the same sets.
     params: ``HedgerParams`` (alpha, gamma, ... traced), or None for the config's values.
+    q_floor: optional float32 (), the least q_next may be (``replay_floor``: the reverse
+    replay passes the value it has just stored for the next step; -inf for none).
     """
     t = transition
     expect_transition(config, t, ())
@@ -109,6 +112,8 @@ def train_step(config: HedgerConfig, memory: Memory, transition: Transition, cac
     pred = jax.tree_util.tree_map(lambda x: x[0], batch)
     q_next, _ = greedy_value_from(config, memory, t.next_obs, batch.value[1:], batch.known[1:],
                                   params)
+    if q_floor is not None:
+        q_next = jnp.maximum(q_next, q_floor)       # NaN stays NaN: still refused below
     q_next = jnp.where(jnp.asarray(t.terminated, bool), 0.0, q_next)
     reward = jnp.asarray(t.reward, jnp.float32)
     q_new = pred.value + p.alpha * (reward + p.gamma * q_next - pred.value)
@@ -125,19 +130,45 @@ def train_step(config: HedgerConfig, memory: Memory, transition: Transition, cac
     return memory, TrainInfo(pred.value, q_next, q_new, pred.known)
 
 
+def replay_floor_on(p: HedgerParams) -> bool:
+    """Whether the reverse replay carries a floor for max_a' Q(s', a') (``replay_floor`` not
+    a constant False: without it the replay is the same program as the paper's)."""
+    on = p.replay_floor
+    return not (isinstance(on, (bool, np.bool_)) and not on)
+
+
+def next_floor(p: HedgerParams, info: TrainInfo, stored: jax.Array) -> jax.Array:
+    """The floor for the step before this one in time, float32 (): the target q_new this
+    step stored (``stored`` bool (): it was valid and finite), else -inf; -inf without
+    ``replay_floor``."""
+    ok = stored & jnp.isfinite(info.q_new) & jnp.asarray(p.replay_floor, bool)
+    return jnp.where(ok, info.q_new, -jnp.inf).astype(jnp.float32)
+
+
 def train_episode(config: HedgerConfig, memory: Memory, episode: Transition,
                   params: Optional[HedgerParams] = None):
     """Reverse replay (Lin 1992): ``train_step`` over an episode newest-first.
 
     episode: ``Transition`` with leading axis T (padded steps have valid=False and change
     nothing). params: ``HedgerParams``, or None for the config's values. Returns (memory,
-    ``TrainInfo`` with leading axis T, in the episode's time order).
+    ``TrainInfo`` with leading axis T, in the episode's time order). With ``replay_floor``
+    each step's max_a' Q(s', a') is at least the target the step after it stored.
     """
 
     expect_transition(config, episode, jnp.shape(episode.reward)[:1], "episode")
     params = with_data_bandwidth(config, memory, params)     # once, from the memory before
 
-    def body(mem, t):
-        return train_step(config, mem, t, params=params)
+    if not replay_floor_on(resolve(config, params)):
+        def body(mem, t):
+            return train_step(config, mem, t, params=params)
 
-    return jax.lax.scan(body, memory, episode, reverse=True)
+        return jax.lax.scan(body, memory, episode, reverse=True)
+
+    def floored(carry, t):
+        mem, floor = carry
+        mem, info = train_step(config, mem, t, params=params, q_floor=floor)
+        return (mem, next_floor(resolve(config, params), info, jnp.asarray(t.valid, bool))), info
+
+    (memory, _), info = jax.lax.scan(floored, (memory, jnp.float32(-jnp.inf)), episode,
+                                     reverse=True)
+    return memory, info

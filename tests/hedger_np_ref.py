@@ -61,10 +61,11 @@ def ref_predict(points: np.ndarray, values: np.ndarray, size: int, zq: np.ndarra
                 max_neighbours: int, default_value: float = 0.0, use_ivh: bool = True,
                 ivh_tol: float = 1e-3, rel_margin: float = 1e-4, kernel_k: int = 0,
                 kernel_range: float = 4.0, min_weight: float = 0.01,
-                value_eps: float = 0.0) -> RefPrediction:
+                value_eps: float = 0.0, clip_to_neighbours: bool = False) -> RefPrediction:
     """Algorithm 1 in float64. ``points``: (N, d) rows = stored scaled inputs; slots >= size
     are empty and ignored. ``values`` are raw Q values; with ``value_eps`` the fit is made
-    on ``to_fit`` of them and its intercept mapped back."""
+    on ``to_fit`` of them and its intercept mapped back; ``clip_to_neighbours`` clips the
+    intercept to the neighbours' (fit-space) values' range first."""
     points = np.asarray(points, np.float64)[:size]
     values = np.asarray(values, np.float64)[:size]
     zq = np.asarray(zq, np.float64)
@@ -111,8 +112,10 @@ def ref_predict(points: np.ndarray, values: np.ndarray, size: int, zq: np.ndarra
             return RefPrediction(float(default_value), False, n, idx, dist, kappa, lhs, rhs,
                                  ambiguous)
     sw = np.sqrt(kappa)[:, None]
-    beta, *_ = np.linalg.lstsq(X * sw, to_fit(values[idx], value_eps) * sw[:, 0], rcond=None)
-    return RefPrediction(float(from_fit(beta[0], value_eps)), True, n, idx, dist, kappa, lhs,
+    y = to_fit(values[idx], value_eps)
+    beta, *_ = np.linalg.lstsq(X * sw, y * sw[:, 0], rcond=None)
+    intercept = float(np.clip(beta[0], y.min(), y.max())) if clip_to_neighbours else beta[0]
+    return RefPrediction(float(from_fit(intercept, value_eps)), True, n, idx, dist, kappa, lhs,
                          rhs, ambiguous)
 
 
@@ -135,6 +138,7 @@ class RefParams:
     min_weight: float = 0.01
     region_scale: float = 1.0
     value_eps: float = 0.0
+    clip_to_neighbours: bool = False
 
     def predict(self, points, values, size, zq) -> RefPrediction:
         return ref_predict(points, values, size, zq, bandwidth=self.bandwidth,
@@ -143,7 +147,8 @@ class RefParams:
                            default_value=self.default_value, use_ivh=self.use_ivh,
                            ivh_tol=self.ivh_tol, kernel_k=self.kernel_k,
                            kernel_range=self.kernel_range, min_weight=self.min_weight,
-                           value_eps=self.value_eps)
+                           value_eps=self.value_eps,
+                           clip_to_neighbours=self.clip_to_neighbours)
 
 
 def ref_greedy_value_discrete(p: RefParams, points, values, size, s) -> float:
@@ -154,15 +159,18 @@ def ref_greedy_value_discrete(p: RefParams, points, values, size, s) -> float:
     return float(best)
 
 
-def ref_train_step(p: RefParams, points, values, size, s, a, r, s_next, terminated):
-    """Algorithm 2 (discrete greedy max, identity input scaling). Returns
-    (new_points (N+1,d), new_values (N+1,), q, q_next, q_new, pred)."""
+def ref_train_step(p: RefParams, points, values, size, s, a, r, s_next, terminated,
+                   q_floor: float = -np.inf):
+    """Algorithm 2 (discrete greedy max, identity input scaling); max_a' Q(s', a') is at
+    least ``q_floor``. Returns (new_points (N+1,d), new_values (N+1,), q, q_next, q_new,
+    pred)."""
     points = np.asarray(points, np.float64)[:size]
     values = np.asarray(values, np.float64)[:size].copy()
     zq = scale(s, a)
     pred = p.predict(points, values, size, zq)
     q = pred.value
-    q_next = 0.0 if terminated else ref_greedy_value_discrete(p, points, values, size, s_next)
+    q_next = 0.0 if terminated else max(
+        ref_greedy_value_discrete(p, points, values, size, s_next), q_floor)
     q_new = q + p.alpha * (r + p.gamma * q_next - q)
     # Region update and the new point in the fit's value space (the identity by default):
     # the returned values are as the memory stores them.
@@ -174,6 +182,25 @@ def ref_train_step(p: RefParams, points, values, size, s, a, r, s_next, terminat
     new_points = np.concatenate([points, zq[None, :]], axis=0)
     new_values = np.concatenate([stored, [target]])
     return new_points, new_values, q, q_next, q_new, pred
+
+
+def ref_train_episode(p: RefParams, points, values, size, episode, replay_floor=False):
+    """Reverse replay of an episode (a dict of arrays obs (T,S), action (T,A), reward (T,),
+    next_obs (T,S), terminated (T,), all steps valid), newest first; with ``replay_floor``
+    each step's q_next is at least the q_new the step after it stored (value_eps 0). Returns
+    (points, values, q_new (T,) in time order)."""
+    points = np.asarray(points, np.float64)[:size]
+    values = np.asarray(values, np.float64)[:size]
+    T = len(episode["reward"])
+    q_new = np.zeros(T)
+    floor = -np.inf
+    for t in reversed(range(T)):
+        points, values, _, _, q_new[t], _ = ref_train_step(
+            p, points, values, len(values), episode["obs"][t], episode["action"][t],
+            float(episode["reward"][t]), episode["next_obs"][t], bool(episode["terminated"][t]),
+            floor)
+        floor = q_new[t] if replay_floor else -np.inf
+    return points, values, q_new
 
 
 def replace_fields(obj, **kw):

@@ -329,7 +329,8 @@ def test_adaptive_lines_use_the_data_chosen_width_only_with_discrete_actions():
     corridor = build_figure("fig5", "quick").variants[1]
     assert dict(corridor.params) == dict(hedger_jax.ADAPTIVE_CONTINUOUS, bandwidth_k=48,
                                          guess_unknown=True, alpha=1.0,
-                                         greedy_temperature=0.3)
+                                         greedy_temperature=0.3, replay_floor=True,
+                                         clip_to_neighbours=True, ivh_tol=0.5)
     assert corridor.state_scale_factors is None
     # A whole figure of adaptive lines builds without the continuous-actions warning.
     import warnings

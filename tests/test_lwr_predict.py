@@ -347,3 +347,30 @@ def test_random_clouds_match_reference_property(seed, n, spread):
             assert float(out[0][j]) == pytest.approx(r.value, rel=2e-4, abs=2e-4 * scale), j
         else:
             assert float(out[0][j]) == CFG_R.default_value
+
+
+def test_clip_to_neighbours_matches_reference(random_case):
+    """clip_to_neighbours: a known value is the fit's clipped to its neighbours' stored
+    values' range (float64 reference); without the hull check extrapolated queries overshoot
+    that range, so the clip binds on some of them and leaves the rest unchanged."""
+    Z, V, Q, _ = random_case
+    cfg = CFG_R.replace(use_ivh=False, clip_to_neighbours=True)
+    mem = _memory(cfg, Z, V)
+    far = f32(np.random.default_rng(7).uniform(-0.3, 0.8, size=(64, 3)))
+    queries = np.concatenate([Q, far])
+    out = jax.jit(jax.vmap(functools.partial(predict, cfg), in_axes=(None, 0, 0)))(
+        mem, jnp.asarray(queries[:, :2]), jnp.asarray(queries[:, 2:]))
+    clipped = checked = 0
+    for j, zq in enumerate(queries):
+        kw = dict(bandwidth=cfg.bandwidth, k_thresh=default_k_thresh(cfg.bandwidth),
+                  k_min=cfg.k_min, max_neighbours=cfg.max_neighbours, use_ivh=False)
+        r = ref_predict(Z, V, len(Z), zq.astype(np.float64), clip_to_neighbours=True, **kw)
+        raw = ref_predict(Z, V, len(Z), zq.astype(np.float64), **kw)
+        if r.ambiguous or not r.known:
+            continue
+        checked += 1
+        assert bool(out[1][j])
+        assert float(out[0][j]) == pytest.approx(r.value, rel=2e-4, abs=2e-4), (j, zq)
+        assert V[r.idx].min() - 1e-6 <= float(out[0][j]) <= V[r.idx].max() + 1e-6
+        clipped += abs(raw.value - r.value) > 1e-3
+    assert checked >= 60 and clipped >= 5, (checked, clipped)

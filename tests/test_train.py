@@ -10,9 +10,11 @@ import pytest
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
-from hedger_jax import (HedgerConfig, Transition, add_points, init_memory,  # noqa: E402
-                        train_episode, train_step)
-from hedger_np_ref import RefParams, default_k_thresh, f32, ref_train_step  # noqa: E402
+from hedger_jax import (HedgerConfig, HedgerParams, Transition, add_points,  # noqa: E402
+                        init_memory, train_episode, train_step)
+from hedger_jax.agent import train_prefix  # noqa: E402
+from hedger_np_ref import (RefParams, default_k_thresh, f32, ref_train_episode,  # noqa: E402
+                           ref_train_step)
 
 ACTIONS = ((-0.05,), (0.0,), (0.05,))
 _KW = dict(capacity=256, bandwidth=0.1, max_neighbours=16, alpha=0.8, gamma=0.8,
@@ -260,3 +262,64 @@ def test_train_episode_newest_first_order_matters(data):
     np.testing.assert_allclose(np.asarray(m_ep.values), np.asarray(m_rev.values), rtol=1e-5,
                                atol=1e-6)
     assert not np.allclose(np.asarray(m_ep.values), np.asarray(m_fwd.values), atol=1e-4)
+
+
+# ------------------------------------------------------------------ replay_floor
+def _chain(rng, T, reward_last=2.0):
+    """A connected episode (next_obs[t] = obs[t + 1]) ending in a rewarded terminal."""
+    s = f32(np.cumsum(np.r_[[[0.05, 0.1]], rng.uniform(0.0, 0.03, (T, 2))], axis=0))
+    a = f32(rng.choice([-0.05, 0.0, 0.05], size=(T, 1)))
+    r = f32(np.r_[rng.uniform(0, 0.05, T - 1), reward_last])
+    term = np.arange(T) == T - 1
+    return dict(obs=s[:-1], action=a, reward=r, next_obs=s[1:], terminated=term)
+
+
+def _as_transition(ep, valid=None):
+    T = len(ep["reward"])
+    valid = np.ones(T, bool) if valid is None else np.asarray(valid, bool)
+    return Transition(**{k: jnp.asarray(v) for k, v in ep.items()}, valid=jnp.asarray(valid))
+
+
+def test_replay_floor_matches_reference(data):
+    """With replay_floor each step's max_a' Q(s', a') is at least the target the step after
+    it stored: the float64 reference's reverse replay, and not the plain replay."""
+    S, A, V, mem = data
+    cfg = CFG.replace(replay_floor=True)
+    ep = _chain(np.random.default_rng(3), 8)
+    m_ep, infos = jax.jit(functools.partial(train_episode, cfg))(mem, _as_transition(ep))
+    P = np.concatenate([S, A], 1)
+    refp = _refp(CFG)
+    ref_P, ref_V, ref_q_new = ref_train_episode(refp, P, V, len(V), ep, replay_floor=True)
+    _, _, plain_q_new = ref_train_episode(refp, P, V, len(V), ep, replay_floor=False)
+    np.testing.assert_allclose(np.asarray(infos.q_new), ref_q_new, rtol=2e-4, atol=2e-4)
+    np.testing.assert_allclose(np.asarray(m_ep.values)[:len(ref_V)], ref_V, rtol=2e-4, atol=2e-4)
+    assert np.max(np.abs(ref_q_new - plain_q_new)) > 0.1     # the floor did bind
+
+
+def test_replay_floor_gives_the_discounted_return_where_nothing_is_known():
+    """alpha = 1, isolated steps (every prediction "don't know", default 0): with the floor
+    each stored target is the episode's discounted return from that step (closed form);
+    without it, the step's reward alone. A sweep over the switch gives both at once, and
+    train_prefix (the padded, length-limited replay) gives the same."""
+    cfg = HedgerConfig(2, 1, capacity=64, bandwidth=0.01, max_neighbours=8, alpha=1.0,
+                       gamma=0.9, default_value=0.0, discrete_actions=ACTIONS,
+                       action_low=(-0.1,), action_high=(0.1,))
+    T = 5
+    s = f32(np.stack([np.arange(T + 1) * 1.0, np.zeros(T + 1)], 1))     # far apart
+    r = f32([0.5, 0.0, 1.0, 0.0, 3.0])
+    ep = dict(obs=s[:-1], action=f32(np.zeros((T, 1))), reward=r, next_obs=s[1:],
+              terminated=np.arange(T) == T - 1)
+    returns = np.array([sum(0.9 ** (j - t) * r[j] for j in range(t, T)) for t in range(T)])
+    params = HedgerParams.create(cfg, replay_floor=np.array([False, True]))
+    run = jax.jit(jax.vmap(lambda p: train_episode(cfg, init_memory(cfg), _as_transition(ep),
+                                                   p)))
+    mem, infos = run(params)
+    np.testing.assert_allclose(np.asarray(infos.q_new[0]), r, rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(infos.q_new[1]), returns, rtol=1e-5)
+    np.testing.assert_allclose(np.asarray(mem.values[1])[:T][::-1], returns, rtol=1e-5)
+    padded = _as_transition({k: np.concatenate([v, v[:2]]) for k, v in ep.items()},
+                            valid=np.r_[np.ones(T, bool), False, False])
+    one = HedgerParams.create(cfg, replay_floor=True)
+    mem_p = jax.jit(lambda m, e, p: train_prefix(cfg, m, e, jnp.int32(T), params=p))(
+        init_memory(cfg), padded, one)
+    np.testing.assert_allclose(np.asarray(mem_p.values)[:T][::-1], returns, rtol=1e-5)
