@@ -1,17 +1,41 @@
-"""The suite runs with ``hedger_jax.cpu.configure()``, as the experiments and benchmarks do:
-XLA then compiles HEDGER's many small fusions about a third faster (most of the suite's time
-is compilation). ``test_cpu.py`` checks the unconfigured default in fresh processes."""
-import os
+"""Suite-wide set-up.
 
+* ``hedger_jax.cpu.configure()``, as the experiments and benchmarks do: XLA then compiles
+  HEDGER's many small fusions about a third faster (most of the suite's time is compilation).
+  ``test_cpu.py`` checks the unconfigured default in fresh processes.
+* One XLA compilation cache for the whole run, shared by the xdist workers: a program that
+  several tests (or both workers) build is compiled once. It lives in a temporary folder made
+  for this run and removed at its end, so no run reads another's programs.
+* Tests marked ``full`` run only with HEDGER_JAX_FULL_TESTS=1 (docs/testing.md).
+"""
+import os
+import shutil
+import tempfile
+
+import jax
 import pytest
 
 from hedger_jax import cpu
 
 cpu.configure()
 
+_CACHE_ENV = "HEDGER_JAX_TEST_XLA_CACHE"
+# The controller makes the folder before xdist starts its workers, which inherit the variable.
+_OWN_CACHE = _CACHE_ENV not in os.environ
+if _OWN_CACHE:
+    os.environ[_CACHE_ENV] = tempfile.mkdtemp(prefix="hedger-jax-xla-cache-")
+jax.config.update("jax_compilation_cache_dir", os.environ[_CACHE_ENV])
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
+def pytest_unconfigure(config):
+    if _OWN_CACHE:
+        shutil.rmtree(os.environ.pop(_CACHE_ENV), ignore_errors=True)
+
 
 def pytest_collection_modifyitems(config, items):
-    """Tests marked ``full`` run only with HEDGER_JAX_FULL_TESTS=1 (CI's 10 minutes)."""
+    """Tests marked ``full`` run only with HEDGER_JAX_FULL_TESTS=1."""
     if os.environ.get("HEDGER_JAX_FULL_TESTS"):
         return
     skip = pytest.mark.skip(reason="slow: set HEDGER_JAX_FULL_TESTS=1")

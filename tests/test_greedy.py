@@ -610,13 +610,17 @@ def test_greedy_temperature_takes_the_weighted_mean_of_the_samples():
         CFG_C0, mem, jnp.asarray(f32([0.5])), KEYS[0], p)))(stack)
     acts, vals = np.asarray(acts)[:, 0], np.asarray(vals)
     assert np.all(np.asarray(known))
-    assert acts[0] == grid[int(np.argmax(ref_v))] and vals[0] == pytest.approx(ref_v.max(),
-                                                                                rel=1e-5)
+    # T = 0: a best sample. The function ties a = 0.2 and 0.4 exactly, so float rounding (which
+    # differs between CPUs) may pick either: any sample within rounding of the best is right.
+    best = np.flatnonzero(ref_v >= ref_v.max() - 1e-5 * abs(ref_v.max()))
+    assert len(best) == 2 and acts[0] in grid[best]
+    assert vals[0] == pytest.approx(ref_v.max(), rel=1e-5)
     for a, v, t in zip(acts[1:], vals[1:], temps[1:]):
         want_a, want_v = _soft_ref(ref_v, t, grid)
         assert a == pytest.approx(want_a, abs=2e-3) and v == pytest.approx(want_v, rel=1e-5)
-    # Softer means closer to the middle of the nearly flat range and a lower value.
-    assert abs(acts[3]) < abs(acts[2]) < abs(acts[1]) < abs(acts[0])
+    # Softer means closer to the middle of the nearly flat range and a lower value (T = 0 is
+    # left out of the actions' order: it is either side of the tie).
+    assert abs(acts[3]) < abs(acts[2]) < abs(acts[1])
     assert vals[3] < vals[2] < vals[1] < vals[0]
     targets = jax.jit(jax.vmap(lambda p: greedy_value(CFG_C0, mem, jnp.asarray(f32([0.5])),
                                                       p)[0]))(stack)
