@@ -69,7 +69,7 @@ def run(bandwidths: List[float], methods: List[str], seeds: int, continuous: boo
                         eval_episodes=eval_episodes)
     specs = [(m, _parse_method(m)) for m in methods]
     widest = max(h * (float(s.get("kernel_range", 4.0))
-                      if s.get("kernel_k", 0) or s.get("bandwidth_k", 0) else 1.0)
+                      if s.get("bandwidth_k", 0) else 1.0)
                  for h in bandwidths for _, s in specs)
     config = HedgerConfig.for_env(env, capacity=capacity, bandwidth=min(bandwidths),
                                   max_bandwidth=widest, neighbour_index="grid", **base)

@@ -113,8 +113,7 @@ def group_config(variants: List[Variant]) -> HedgerConfig:
     config = config_of(variants[0])
     radius = lambda p: selection_radius(  # noqa: E731
         p.get("bandwidth", config.bandwidth), p.get("min_weight", config.min_weight),
-        p.get("kernel_k", config.kernel_k), p.get("kernel_range", config.kernel_range),
-        p.get("bandwidth_k", config.bandwidth_k))
+        p.get("kernel_range", config.kernel_range), p.get("bandwidth_k", config.bandwidth_k))
     widest = max(radius(dict(v.params)) for v in variants)
     needed = config.bandwidth * widest / config.k_thresh
     return config.replace(max_bandwidth=max(needed, config.max_bandwidth))

@@ -33,7 +33,7 @@ from hedger_jax.checkpoint import (Checkpoint, CheckpointError, load_checkpoint,
 from hedger_jax.learner import Hedger, make_env
 from hedger_jax.validation import InvalidInputError
 
-__version__ = "0.2.0"
+from hedger_jax.version import __version__
 
 __all__ = [
     "ADAPTIVE", "ADAPTIVE_CONTINUOUS", "HedgerConfig", "HedgerParams", "InvalidParamsError", "StaticFieldError", "check_params",

@@ -26,14 +26,13 @@ host-side driver can show progress between blocks without any host round-trip in
 """
 from __future__ import annotations
 
-import dataclasses
 from typing import Any, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from hedger_jax.config import HedgerConfig, reject_traced
+from hedger_jax.config import HedgerConfig
 from hedger_jax.data_bandwidth import with_data_bandwidth
 from hedger_jax.greedy import (greedy_action, greedy_action_from_uniform, greedy_candidates,
                                greedy_choice, greedy_draws)
@@ -41,74 +40,12 @@ from hedger_jax.loops import masked_fori_loop
 from hedger_jax.memory import Memory, init_memory, refresh_index
 from hedger_jax.params import HedgerParams, resolve
 from hedger_jax.validation import expect_key
+from hedger_jax.run_config import EXPLORATION, RunConfig  # noqa: F401 (re-exported)
 from hedger_jax.replay_cache import (REUSE_MIN_CAPACITY, StepNeighbours, missing, record_shapes,
                                      replay_sets)
 from hedger_jax.replay_cache import usable as replay_cache_usable
 from hedger_jax.train import (Transition, next_floor, replay_floor_on, train_episode,
                               train_step)
-
-#: ``RunConfig.exploration`` choices.
-EXPLORATION = ("random", "gaussian")
-
-
-@dataclasses.dataclass(frozen=True)
-class RunConfig:
-    """Static settings of one learning run (the HEDGER settings live in ``HedgerConfig``).
-
-    epsilon: probability of an exploratory action.
-    exploration: "random" (a uniformly random action, the mountain-car protocol) or
-      "gaussian" (the greedy action plus N(0, noise_std) noise, clipped to the bounds; the
-      corridor protocol).
-    n_blocks: number of evaluation blocks of phase two.
-    episodes_per_block / points_per_block: the length of a block (exactly one must be set).
-    eval_episodes: greedy evaluation episodes per evaluation (learning off).
-    eval_max_steps: cap of an evaluation episode (a failure counts as this many steps).
-    train_max_steps: cap of a phase-two training episode (None: the env's ``max_steps``).
-    reuse_neighbours: the replay reuses the neighbour sets the rollout's greedy searches
-      found (``hedger_jax.replay_cache``): the same sets, so the same run up to float32
-      rounding (XLA compiles the larger program's arithmetic a little differently: a whole
-      ``train`` and the same run block by block then agree to rounding, not bit for bit).
-      None (default): for memories of at least ``replay_cache.REUSE_MIN_CAPACITY`` slots,
-      where searches are dear. False: every query searches.
-
-    epsilon and noise_std are the defaults of the ``HedgerParams`` fields of the same names.
-    """
-
-    epsilon: float = 0.2
-    exploration: str = "random"
-    noise_std: float = 0.2
-    n_blocks: int = 20
-    episodes_per_block: Optional[int] = 10
-    points_per_block: Optional[int] = None
-    eval_episodes: int = 2500
-    eval_max_steps: int = 200
-    train_max_steps: Optional[int] = None
-    reuse_neighbours: Optional[bool] = None
-
-    def __post_init__(self):
-        for field in dataclasses.fields(self):
-            reject_traced("RunConfig", field.name, getattr(self, field.name))
-        if not (0.0 <= self.epsilon <= 1.0):
-            raise ValueError(f"epsilon: must be in [0, 1], got {self.epsilon}")
-        if self.exploration not in EXPLORATION:
-            raise ValueError(f"exploration: must be one of {EXPLORATION}, got {self.exploration!r}")
-        if not self.noise_std >= 0:
-            raise ValueError(f"noise_std: must be >= 0, got {self.noise_std}")
-        if self.n_blocks < 0:
-            raise ValueError(f"n_blocks: must be >= 0, got {self.n_blocks}")
-        if (self.episodes_per_block is None) == (self.points_per_block is None):
-            raise ValueError("episodes_per_block / points_per_block: set exactly one of them")
-        for name in ("episodes_per_block", "points_per_block"):
-            v = getattr(self, name)
-            if v is not None and v < 1:
-                raise ValueError(f"{name}: must be >= 1, got {v}")
-        if self.eval_episodes < 1:
-            raise ValueError(f"eval_episodes: must be >= 1, got {self.eval_episodes}")
-        if self.eval_max_steps < 1:
-            raise ValueError(f"eval_max_steps: must be >= 1, got {self.eval_max_steps}")
-        if self.train_max_steps is not None and self.train_max_steps < 1:
-            raise ValueError(f"train_max_steps: must be >= 1, got {self.train_max_steps}")
-
 
 class Evaluation(NamedTuple):
     """mean_steps: float32 () mean steps to the goal, failures counted as the cap;

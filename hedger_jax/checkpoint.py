@@ -49,8 +49,12 @@ from typing import Any, Dict, NamedTuple, Optional, Union
 import numpy as np
 
 from hedger_jax.config import HedgerConfig
+from hedger_jax.errors import CheckpointError  # noqa: F401 (re-exported)
 from hedger_jax.files import atomic_write
-from hedger_jax.memory import Memory
+from hedger_jax.memory import Memory, refresh_index
+from hedger_jax.run_config import RunConfig
+from hedger_jax.validation import InvalidInputError, check_memory, config_differences
+from hedger_jax.version import __version__ as lib_version
 
 __all__ = ["CheckpointError", "Checkpoint", "save_checkpoint", "load_checkpoint",
            "read_checkpoint_header", "FORMAT", "FORMAT_VERSION"]
@@ -68,11 +72,6 @@ _MEMORY_DTYPES = {"points": np.float32, "values": np.float32, "size": np.int32,
 _CHUNK = 1 << 20
 
 PathLike = Union[str, os.PathLike]
-
-
-class CheckpointError(ValueError):
-    """A checkpoint file is missing, truncated, corrupt, of another format or version, or does
-    not match what the caller expects (config fields, env)."""
 
 
 class Checkpoint(NamedTuple):
@@ -132,10 +131,6 @@ def _versions() -> Dict[str, str]:
     """The library, jax, numpy and Python versions for the metadata."""
     import jax
 
-    try:
-        from hedger_jax import __version__ as lib_version
-    except ImportError:  # during partial imports
-        lib_version = "unknown"
     return {"library_version": lib_version, "jax_version": jax.__version__,
             "numpy_version": np.__version__, "python_version": platform.python_version()}
 
@@ -158,7 +153,6 @@ def save_checkpoint(path: PathLike, config: HedgerConfig, memory: Memory, run_co
     the metadata; extra_arrays: numeric arrays stored bit-for-bit (e.g. a PRNG key);
     metadata: extra JSON-serialisable keys (may not override the library's own).
     """
-    from hedger_jax.validation import InvalidInputError, check_memory
 
     if not isinstance(config, HedgerConfig):
         raise TypeError(f"save_checkpoint: config must be a HedgerConfig, got {type(config).__name__}")
@@ -274,7 +268,6 @@ def load_checkpoint(path: PathLike, config: Optional[HedgerConfig] = None,
     """
     import jax.numpy as jnp
 
-    from hedger_jax.validation import InvalidInputError, check_memory, config_differences
 
     header, raw, fail, where = _read(os.fspath(path))
     stored = _config_from_json(HedgerConfig, header["hedger_config"], where)
@@ -286,7 +279,6 @@ def load_checkpoint(path: PathLike, config: Optional[HedgerConfig] = None,
             fail(f"config mismatch in fields {diff} ({detail})")
     stored_run = None
     if header["run_config"] is not None:
-        from hedger_jax.agent import RunConfig
 
         if header.get("run_config_type", "RunConfig") != "RunConfig":
             fail(f"unknown run_config type {header.get('run_config_type')!r}")
@@ -312,7 +304,6 @@ def load_checkpoint(path: PathLike, config: Optional[HedgerConfig] = None,
         check_memory(stored, np_memory)
     except InvalidInputError as exc:
         fail(f"the stored memory is invalid: {exc}")
-    from hedger_jax.memory import refresh_index
 
     # The stored arrays come back bit for bit; the neighbour index is rebuilt from them.
     memory = refresh_index(stored, Memory(**{k: jnp.asarray(getattr(np_memory, k))

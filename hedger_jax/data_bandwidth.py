@@ -126,8 +126,4 @@ def with_data_bandwidth(config: HedgerConfig, memory: Memory,
     h = data_bandwidth(config, memory, params)
     radius = jnp.where(on, h * jnp.sqrt(jnp.log(1.0 / jnp.asarray(p.min_weight, jnp.float32))),
                        p.k_thresh)
-    if params is None:    # the config's values: the (d,) input scaling as arrays, as given
-        p = p._replace(input_offset=jnp.asarray(p.input_offset, jnp.float32),
-                       input_scale=jnp.asarray(p.input_scale, jnp.float32))
-    # kernel_k stays as it is: it is 0 wherever bandwidth_k > 0 (check_params).
     return p._replace(bandwidth=h, bandwidth_k=0, k_thresh=radius)

@@ -36,7 +36,7 @@ import numpy as np
 from hedger_jax.config import HedgerConfig
 from hedger_jax.data_bandwidth import with_data_bandwidth
 from hedger_jax.memory import Memory
-from hedger_jax.params import resolve, to_fit_space
+from hedger_jax.params import constant, resolve, to_fit_space
 from hedger_jax.validation import expect, expect_key
 from hedger_jax.prediction import Prediction, predict_detailed
 
@@ -251,7 +251,7 @@ def _ties(config: HedgerConfig, params, u_tie):
     if u_tie is None:
         return None
     on = resolve(config, params).random_ties
-    if isinstance(on, (bool, np.bool_)) and not on:
+    if constant(on) is False:
         return None
     return jnp.asarray(on, bool), u_tie
 
@@ -276,7 +276,7 @@ def _soft(config: HedgerConfig, params):
     ``greedy_temperature`` is a constant 0 (the same program as without the option)."""
     p = resolve(config, params)
     t = p.greedy_temperature
-    if isinstance(t, (float, int, np.floating)) and t == 0:
+    if constant(t) == 0:
         return None
     return jnp.asarray(t, jnp.float32), lambda f: to_fit_space(p, f)
 
@@ -384,7 +384,7 @@ def _guess_switch(config: HedgerConfig, params):
     """``guess_unknown`` as a bool () switch, or None where it is a constant False (the same
     program as without the option)."""
     on = resolve(config, params).guess_unknown
-    if isinstance(on, (bool, np.bool_)) and not on:
+    if constant(on) is False:
         return None
     return jnp.asarray(on, bool)
 

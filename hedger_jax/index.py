@@ -29,10 +29,13 @@ import jax.numpy as jnp
 import numpy as np
 from jax.custom_batching import custom_vmap
 
-from hedger_jax.config import GRID_MAX_CAPACITY
 from hedger_jax.fusion import computed_once
 from hedger_jax.kselect import cpu_kernels, smallest_k, true_positions
 from hedger_jax.loops import batch_cond
+
+#: Largest capacity of the grid index (int32 positions with a flag at bit 30); above it
+#: "auto" uses brute force and "grid" is refused.
+GRID_MAX_CAPACITY = 1 << 29
 
 #: Largest number of cells per level (the length of one level's ``starts``; ``max_cells``).
 _MAX_CELLS = 1 << 22

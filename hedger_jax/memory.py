@@ -27,20 +27,13 @@ from hedger_jax import index as _grid
 from hedger_jax.canonical import canonical_order
 from hedger_jax.config import HedgerConfig
 from hedger_jax.params import HedgerParams, resolve, to_fit_space
+from hedger_jax.errors import MemoryFullError, NonFiniteValueError  # noqa: F401 (re-exported)
 from hedger_jax.validation import expect
 
 #: ``Memory.flags`` bit: a point was dropped because the memory was full ("error" policy).
 FLAG_FULL = 1
 #: ``Memory.flags`` bit: a NaN/inf value or point was refused.
 FLAG_NONFINITE = 2
-
-
-class MemoryFullError(RuntimeError):
-    """The memory was full under ``full_policy="error"`` and a point was dropped."""
-
-
-class NonFiniteValueError(FloatingPointError):
-    """A NaN or infinite value tried to enter the memory (it was refused)."""
 
 
 class Memory(NamedTuple):

@@ -9,7 +9,7 @@ import numpy as np
 
 from hedger_jax.config import HedgerConfig
 from hedger_jax.data_bandwidth import with_data_bandwidth
-from hedger_jax.params import HedgerParams, flag, from_fit_space, resolve
+from hedger_jax.params import HedgerParams, constant, flag, from_fit_space, resolve
 from hedger_jax.validation import expect
 from hedger_jax.lwr import kernel_weights, local_fit_columns
 from hedger_jax.memory import (Memory, Neighbours, scale_inputs, select_neighbours,
@@ -59,7 +59,7 @@ def predict_from_neighbours(config: HedgerConfig, memory: Memory, z: jax.Array,
     # computed), so brute force and the grid index give bit-identical fits.
     sqdist = squared_distances(zt, jnp.zeros((zt.shape[0],), zt.dtype))
     p = resolve(config, params)
-    w = kernel_weights(sqdist, kernel_width(p, sqdist, nb.mask), nb.mask)
+    w = kernel_weights(sqdist, p.bandwidth, nb.mask)
     fit = local_fit_columns(zt, y, w, nb.mask, ridge=p.ridge, ivh_tol=p.ivh_tol)
     fit = fit._replace(value=from_fit_space(p, clip_to_neighbour_values(p, fit.value, y,
                                                                         nb.mask)))
@@ -75,29 +75,12 @@ def clip_to_neighbour_values(p: HedgerParams, value: jax.Array, y: jax.Array,
     """The fit's value () clipped to [min, max] of the neighbours' stored values y (k,)
     where mask (k,) holds, with ``clip_to_neighbours``; unchanged without (a constant False:
     not in the program). No neighbours: unchanged (the prediction is not known anyway)."""
-    if isinstance(p.clip_to_neighbours, (bool, np.bool_)) and not p.clip_to_neighbours:
+    if constant(p.clip_to_neighbours) is False:
         return value
     lo = jnp.min(jnp.where(mask, y, jnp.inf))
     hi = jnp.max(jnp.where(mask, y, -jnp.inf))
     clipped = jnp.where(jnp.any(mask), jnp.clip(value, lo, hi), value)
     return jnp.where(jnp.asarray(p.clip_to_neighbours, bool), clipped, value)
-
-
-def kernel_width(p: HedgerParams, sqdist: jax.Array, mask: jax.Array) -> jax.Array:
-    """The query's kernel width h (): ``p.bandwidth`` (the paper), or with ``p.kernel_k`` = m
-    > 0 the width that gives the m-th nearest neighbour (squared distances sqdist (k,), real
-    where mask) the weight ``min_weight``, kept within [bandwidth / kernel_range, bandwidth
-    * kernel_range] (the widest when fewer than m neighbours)."""
-    if isinstance(p.kernel_k, int) and p.kernel_k == 0:
-        return p.bandwidth                              # the paper's: same program as before
-    d2 = jnp.where(mask, sqdist, jnp.inf)
-    # The m-th smallest without a sort (no sort inside loop kernels): the least d2_i with at
-    # least m entries <= it.
-    at_or_below = jnp.sum((d2[None, :] <= d2[:, None]).astype(jnp.int32), axis=1)
-    d2_m = jnp.min(jnp.where(at_or_below >= p.kernel_k, d2, jnp.inf))
-    h = jnp.sqrt(d2_m / jnp.log(1.0 / jnp.asarray(p.min_weight, jnp.float32)))
-    h = jnp.clip(h, p.bandwidth / p.kernel_range, p.bandwidth * p.kernel_range)
-    return jnp.where(p.kernel_k > 0, h, p.bandwidth)
 
 
 def predict_detailed(config: HedgerConfig, memory: Memory, state: jax.Array,

@@ -9,29 +9,14 @@ import numpy as np
 
 from hedger_jax.config import HedgerConfig
 from hedger_jax.data_bandwidth import with_data_bandwidth
-from hedger_jax.params import HedgerParams, flag, resolve, to_fit_space
+from hedger_jax.params import HedgerParams, constant, flag, resolve, to_fit_space
+from hedger_jax.transition import Transition
 from hedger_jax.validation import expect_transition
 from hedger_jax.greedy import greedy_candidates, greedy_value_from
 from hedger_jax.memory import (FLAG_NONFINITE, Memory, add_scaled, scale_inputs,
                                select_neighbours)
 from hedger_jax.prediction import predict_from_neighbours, predict_scaled
 from hedger_jax.replay_cache import cached_neighbours
-
-
-class Transition(NamedTuple):
-    """One experience (s, a, r, s'); an episode has a leading time axis T on every field.
-
-    obs: float32 (S,); action: float32 (A,); reward: float32 (); next_obs: float32 (S,);
-    terminated: bool () true terminal (no bootstrap; a time-limit truncation is *not* one);
-    valid: bool () False for padding (the step changes nothing).
-    """
-
-    obs: jax.Array
-    action: jax.Array
-    reward: jax.Array
-    next_obs: jax.Array
-    terminated: jax.Array
-    valid: jax.Array
 
 
 class TrainInfo(NamedTuple):
@@ -121,10 +106,8 @@ def train_step(config: HedgerConfig, memory: Memory, transition: Transition, cac
     # finite target: refuse it instead, so the memory flags it (FLAG_NONFINITE).
     next_ok = jnp.all(jnp.isfinite(t.next_obs)) | jnp.asarray(t.terminated, bool)
     q_new = jnp.where(next_ok, q_new, jnp.nan)
-    if p.region_update is not False:          # a constant False: not in the program at all
-        weights = pred.weights if isinstance(p.region_scale, float) and p.region_scale == 1.0 \
-            else pred.weights * p.region_scale
-        memory = region_update(memory, pred.indices, weights, pred.mask,
+    if constant(p.region_update) is not False:   # a constant False: not in the program
+        memory = region_update(memory, pred.indices, pred.weights, pred.mask,
                                to_fit_space(p, q_new), flag(p.region_update, valid, False))
     memory = add_scaled(config, memory, z, to_fit_space(p, q_new), valid)
     return memory, TrainInfo(pred.value, q_next, q_new, pred.known)
@@ -133,8 +116,7 @@ def train_step(config: HedgerConfig, memory: Memory, transition: Transition, cac
 def replay_floor_on(p: HedgerParams) -> bool:
     """Whether the reverse replay carries a floor for max_a' Q(s', a') (``replay_floor`` not
     a constant False: without it the replay is the same program as the paper's)."""
-    on = p.replay_floor
-    return not (isinstance(on, (bool, np.bool_)) and not on)
+    return constant(p.replay_floor) is not False
 
 
 def next_floor(p: HedgerParams, info: TrainInfo, stored: jax.Array) -> jax.Array:

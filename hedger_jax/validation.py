@@ -21,6 +21,8 @@ from typing import Any, Optional, Tuple
 import numpy as np
 
 from hedger_jax.config import HedgerConfig
+from hedger_jax.errors import InvalidInputError  # noqa: F401 (re-exported)
+from hedger_jax.transition import Transition
 
 __all__ = ["InvalidInputError", "check_array", "check_observations", "check_actions",
            "check_rewards", "check_transitions", "check_key", "check_memory",
@@ -29,11 +31,6 @@ __all__ = ["InvalidInputError", "check_array", "check_observations", "check_acti
 #: Relative slack on the action bounds and on membership in a discrete action set (the values
 #: arrive as float32 while the config holds float64).
 ACTION_RTOL = 1e-6
-
-
-class InvalidInputError(ValueError):
-    """An input at the host boundary has the wrong shape or dtype, is NaN/inf, or is outside
-    the allowed set. The message names the argument, the problem and the offending value."""
 
 
 def _first_bad(bad: np.ndarray) -> Tuple[int, ...]:
@@ -159,8 +156,6 @@ def check_transitions(config: HedgerConfig, transitions: Any, name: str = "trans
     steps of each episode (last leading axis is time) must be a prefix. Returns a
     ``hedger_jax.train.Transition`` of NumPy arrays of canonical dtypes.
     """
-    from hedger_jax.train import Transition
-
     try:
         fields = {k: getattr(transitions, k) for k in Transition._fields}
     except AttributeError as exc:

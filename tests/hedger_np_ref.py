@@ -59,8 +59,7 @@ def from_fit(y, value_eps: float = 0.0):
 def ref_predict(points: np.ndarray, values: np.ndarray, size: int, zq: np.ndarray, *,
                 bandwidth: float, k_thresh: Optional[float] = None, k_min: int,
                 max_neighbours: int, default_value: float = 0.0, use_ivh: bool = True,
-                ivh_tol: float = 1e-3, rel_margin: float = 1e-4, kernel_k: int = 0,
-                kernel_range: float = 4.0, min_weight: float = 0.01,
+                ivh_tol: float = 1e-3, rel_margin: float = 1e-4,
                 value_eps: float = 0.0, clip_to_neighbours: bool = False) -> RefPrediction:
     """Algorithm 1 in float64. ``points``: (N, d) rows = stored scaled inputs; slots >= size
     are empty and ignored. ``values`` are raw Q values; with ``value_eps`` the fit is made
@@ -83,11 +82,6 @@ def ref_predict(points: np.ndarray, values: np.ndarray, size: int, zq: np.ndarra
     idx = order
     dist = d[idx]
     h = bandwidth
-    if kernel_k > 0:
-        # The data-chosen width: the m-th nearest neighbour gets weight min_weight.
-        d_m = np.sort(dist)[kernel_k - 1] if len(dist) >= kernel_k else np.inf
-        h = float(np.clip(d_m / np.sqrt(np.log(1.0 / min_weight)), bandwidth / kernel_range,
-                          bandwidth * kernel_range))
     kappa = np.exp(-dist ** 2 / h ** 2)
     n = len(idx)
     if n < k_min:
@@ -133,10 +127,6 @@ class RefParams:
     gamma: float = 0.8
     region_update: bool = True
     discrete_actions: Optional[tuple] = None
-    kernel_k: int = 0
-    kernel_range: float = 4.0
-    min_weight: float = 0.01
-    region_scale: float = 1.0
     value_eps: float = 0.0
     clip_to_neighbours: bool = False
 
@@ -145,9 +135,7 @@ class RefParams:
                            k_thresh=self.k_thresh, k_min=self.k_min,
                            max_neighbours=self.max_neighbours,
                            default_value=self.default_value, use_ivh=self.use_ivh,
-                           ivh_tol=self.ivh_tol, kernel_k=self.kernel_k,
-                           kernel_range=self.kernel_range, min_weight=self.min_weight,
-                           value_eps=self.value_eps,
+                           ivh_tol=self.ivh_tol, value_eps=self.value_eps,
                            clip_to_neighbours=self.clip_to_neighbours)
 
 
@@ -177,7 +165,7 @@ def ref_train_step(p: RefParams, points, values, size, s, a, r, s_next, terminat
     stored = to_fit(values, p.value_eps)
     target = to_fit(q_new, p.value_eps)
     if p.region_update:
-        kappa = p.region_scale * pred.kappa
+        kappa = pred.kappa
         stored[pred.idx] = stored[pred.idx] + kappa * (target - stored[pred.idx])
     new_points = np.concatenate([points, zq[None, :]], axis=0)
     new_values = np.concatenate([stored, [target]])

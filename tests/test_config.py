@@ -179,22 +179,126 @@ def test_for_env_action_scale_bounds_spans_the_action_range_like_the_states():
         HedgerConfig.for_env(box, action_scale="bound", capacity=8)
 
 
-def test_a_data_chosen_width_with_continuous_actions_warns(recwarn):
-    import warnings
 
-    from hedger_jax import ADAPTIVE, ADAPTIVE_CONTINUOUS, HedgerParams
 
-    box = _FakeEnv([-1.2, -0.07], [0.5, 0.07], ActionSpace.box([-1.0], [1.0]))
-    discrete = _FakeEnv([-1.2, -0.07], [0.5, 0.07], ActionSpace.discrete([-1.0, 0.0, 1.0]))
-    with pytest.warns(UserWarning, match="continuous actions"):
-        HedgerConfig.for_env(box, capacity=8, kernel_k=8, kernel_range=8.0)
-    cfg = HedgerConfig.for_env(box, capacity=8, max_bandwidth=1.0)
-    with pytest.warns(UserWarning, match="continuous actions"):
-        HedgerParams.create(cfg, kernel_k=[0, 8])
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        HedgerConfig.for_env(discrete, capacity=8, **ADAPTIVE)
-        HedgerConfig.for_env(box, capacity=8, **ADAPTIVE_CONTINUOUS)
-        HedgerParams.create(cfg, **ADAPTIVE_CONTINUOUS)
-        HedgerParams.create(cfg, kernel_k=0)
-    assert "kernel_k" not in ADAPTIVE_CONTINUOUS and ADAPTIVE_CONTINUOUS["value_eps"] > 0
+# ---------------------------------------------------------------- each setting declared once
+# Several valid values for every field of HedgerConfig (a new field without values here fails
+# test_every_field_has_values: add some).
+_BASE = dict(state_dim=2, capacity=64, max_bandwidth=0.3)
+_VALUES = {
+    "state_dim": [1, 3], "action_dim": [1], "input_offset": [0.5, (0.1, -0.2, 0.3)],
+    "input_scale": [2.0, (1.0, 0.5, 4.0)], "capacity": [1, 5000],
+    "bandwidth": [0.01, 0.2], "k_thresh": [0.05, 0.5], "min_weight": [0.001, 0.5],
+    "kernel_range": [1.0, 3.0], "bandwidth_k": [0, 4, 1024], "bandwidth_shrink": [True],
+    "value_eps": [0.0, 1e-6], "k_min": [4, 9], "max_neighbours": [16, 64],
+    "default_value": [-1.0, 2.5], "alpha": [0.0, 1.0], "gamma": [0.5, 0.99],
+    "use_ivh": [False], "region_update": [False], "random_ties": [True],
+    "guess_unknown": [True], "greedy_temperature": [0.0, 0.3], "clip_to_neighbours": [True],
+    "replay_floor": [True], "discrete_actions": [((-1.0,), (1.0,))],
+    "action_low": [-2.0, (-0.5,)], "action_high": [3.0], "greedy_samples": [3, 21],
+    "greedy_iters": [0, 4], "greedy_tol": [1e-5], "full_policy": ["overwrite_oldest"],
+    "ridge": [1e-4], "ivh_tol": [0.0, 0.5], "neighbour_index": ["brute", "grid"],
+    "index_chunk": [8], "index_bounds": [((0, 1), (0, 2), (-1, 1))], "index_levels": [1, 3],
+    "index_recent": [0, 64], "max_bandwidth": [0.4, 1.0],
+}
+
+
+def test_every_field_has_values():
+    assert set(_VALUES) == {f.name for f in dataclasses.fields(HedgerConfig)}
+
+
+@pytest.mark.parametrize("name", sorted(_VALUES))
+def test_replace_equals_constructing_with_the_value(name):
+    """For every field and several values: replace(f=v) is the config constructing with f=v
+    gives (derived fields -- k_thresh, k_min, max_bandwidth, a broadcast input scaling --
+    derived again), and their HedgerParams defaults agree leaf for leaf."""
+    from hedger_jax import HedgerParams
+
+    base = HedgerConfig(**_BASE)
+    for value in _VALUES[name]:
+        built = HedgerConfig(**{**_BASE, name: value})
+        replaced = base.replace(**{name: value})
+        assert replaced == built, (name, value)
+        assert hash(replaced) == hash(built)
+        for a, b in zip(HedgerParams.defaults(replaced), HedgerParams.defaults(built)):
+            np.testing.assert_array_equal(a, b, err_msg=f"{name}={value!r}")
+
+
+def test_a_data_chosen_width_widens_the_radius_whichever_way_it_is_set():
+    """The issue that motivated one declaration: replace(bandwidth_k=4) gave half the
+    selection radius that constructing with bandwidth_k=4 gives."""
+    built = HedgerConfig(2, 1, kernel_range=2, bandwidth_k=4)
+    assert HedgerConfig(2, 1, kernel_range=2).replace(bandwidth_k=4) == built
+    assert built.k_thresh == pytest.approx(2 * 0.015 * math.sqrt(math.log(100.0)), rel=1e-12)
+
+
+def test_an_explicit_derived_value_is_kept_by_replace():
+    cfg = HedgerConfig(2, 1, k_thresh=0.1, k_min=6, max_bandwidth=0.5, input_scale=(1, 2, 3))
+    new = cfg.replace(bandwidth=0.02, state_dim=2)
+    assert (new.k_thresh, new.k_min, new.max_bandwidth, new.input_scale) == (
+        0.1, 6, 0.5, (1.0, 2.0, 3.0))
+
+
+def test_the_kinds_are_declared_once_and_params_follow_them():
+    """HedgerParams' fields are exactly the traced fields of HedgerConfig and RunConfig, with
+    the dtype of their declared kind; a static field is refused by create naming it."""
+    from hedger_jax import HedgerParams, RunConfig, StaticFieldError
+    from hedger_jax.settings import DTYPES, fields_of, spec
+
+    cfg = HedgerConfig(**_BASE)
+    assert HedgerParams._fields == fields_of(HedgerConfig) + fields_of(RunConfig)
+    p = HedgerParams.create(cfg)
+    for name, leaf in p._asdict().items():
+        owner = HedgerConfig if name in HedgerConfig.__dataclass_fields__ else RunConfig
+        kind = spec(owner, name).kind
+        assert leaf.dtype == DTYPES[kind], name
+        assert leaf.shape == ((cfg.dim,) if kind == "vector" else ()), name
+    for name in fields_of(HedgerConfig, ("static",)):
+        with pytest.raises(StaticFieldError, match=name):
+            HedgerParams.create(cfg, **{name: getattr(cfg, name)})
+
+
+@pytest.mark.parametrize("name", sorted(set(_VALUES) & set(
+    __import__("hedger_jax").HedgerParams._fields)))
+def test_params_create_equals_replace_equals_the_config_value(name):
+    """For every traced field and several values: create(config, f=v), create(config)
+    .replace(f=v) and the defaults of config.replace(f=v) are the same leaves."""
+    from hedger_jax import HedgerParams
+
+    base = HedgerConfig(**_BASE)
+    for value in _VALUES[name]:
+        if name == "k_min" and value > base.max_neighbours:
+            continue
+        created = HedgerParams.create(base, **{name: value})
+        replaced = HedgerParams.create(base).replace(**{name: value})
+        from_config = HedgerParams.defaults(base.replace(**{name: value}))
+        for f, a, b, c in zip(HedgerParams._fields, created, replaced, from_config):
+            np.testing.assert_array_equal(a, b, err_msg=f"{name}={value!r}: {f}")
+            np.testing.assert_array_equal(a, c, err_msg=f"{name}={value!r}: {f}")
+            assert a.dtype == b.dtype == c.dtype, (name, f)
+
+
+def test_defaults_and_create_give_one_compiled_program():
+    """Python numbers or arrays make no difference: the defaults' leaves are those of create,
+    so a jitted function compiles once for both (and gives the same result)."""
+    from hedger_jax import HedgerParams
+
+    cfg = HedgerConfig(**_BASE)
+    f = jax.jit(lambda p: p.bandwidth * p.input_scale + p.k_min + p.use_ivh)
+    a = f(HedgerParams.defaults(cfg))
+    b = f(HedgerParams.create(cfg))
+    assert f._cache_size() == 1
+    np.testing.assert_array_equal(a, b)
+
+
+def test_run_config_declares_its_traced_fields():
+    from hedger_jax import RunConfig
+    from hedger_jax.settings import fields_of
+
+    assert fields_of(RunConfig) == ("epsilon", "noise_std")
+    with pytest.raises(ValueError, match="epsilon: must be in"):
+        RunConfig(epsilon=1.5)
+    with pytest.raises(ValueError, match="n_blocks"):
+        RunConfig(n_blocks=-1)
+    assert RunConfig(epsilon=1).epsilon == 1.0 and isinstance(RunConfig(epsilon=1).epsilon,
+                                                               float)

@@ -184,10 +184,7 @@ def test_bad_settings_are_refused_with_named_errors():
     with pytest.raises(ValueError, match="bandwidth_k"):
         CFG.replace(bandwidth_k=POOL + 1)
     assert CFG.replace(bandwidth_k=K + 1).bandwidth_k == K + 1   # m is not limited by k
-    with pytest.raises(ValueError, match="bandwidth_k and kernel_k"):
-        CFG.replace(kernel_k=4)
     with pytest.raises(InvalidParamsError, match="bandwidth_k"):
         HedgerParams.create(CFG, bandwidth_k=-1)
     with pytest.raises(InvalidParamsError, match="bandwidth_k"):
-        HedgerParams.create(CFG.replace(bandwidth_k=0), kernel_k=np.asarray([0, 4]),
-                            bandwidth_k=np.asarray([8, 8]))
+        HedgerParams.create(CFG.replace(bandwidth_k=0), bandwidth_k=np.asarray([8, POOL + 1]))

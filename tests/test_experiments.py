@@ -305,8 +305,8 @@ def test_bandwidth_study_methods_and_robustness_plot(tmp_path):
     from experiments.plotting import plot_robustness
 
     assert _parse_method("adaptive") == dict(METHODS["adaptive"])
-    assert _parse_method("x:kernel_k=8,kernel_range=8.0,value_eps=1e-6") == \
-        {"kernel_k": 8, "kernel_range": 8.0, "value_eps": 1e-6}
+    assert _parse_method("x:bandwidth_k=8,kernel_range=8.0,value_eps=1e-6") == \
+        {"bandwidth_k": 8, "kernel_range": 8.0, "value_eps": 1e-6}
     assert _parse_method("adaptive:kernel_range=3.0") == {**METHODS["adaptive"],
                                                           "kernel_range": 3.0}
     rows = [{"method": m, "bandwidth": h, "per_seed_final": [60.0 + i, 62.0, 64.0 + h]}

@@ -672,7 +672,7 @@ def test_greedy_temperature_near_zero_is_the_search():
 def test_greedy_temperature_is_checked():
     from hedger_jax import HedgerParams
     from hedger_jax.params import InvalidParamsError
-    with pytest.raises(InvalidParamsError, match="greedy_temperature: must be >= 0"):
+    with pytest.raises(InvalidParamsError, match="greedy_temperature: must be a finite number >= 0, got -0.1"):
         HedgerParams.create(CFG_C, greedy_temperature=-0.1)
     with pytest.raises(InvalidParamsError, match="greedy_temperature: must be 0 with discrete"):
         HedgerParams.create(CFG_D, greedy_temperature=0.1)

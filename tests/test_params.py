@@ -172,49 +172,6 @@ def test_a_sweep_equals_separate_runs_per_setting():
                                    np.asarray(want.evaluation.mean_steps), rtol=0, atol=1e-4)
 
 
-def test_a_data_chosen_kernel_width_matches_the_reference():
-    """kernel_k = m: the width that gives the m-th nearest neighbour the weight min_weight,
-    within [h / kernel_range, h * kernel_range] -- predictions and a training step (with a
-    scaled region update) against the float64 reference, for several m, ranges and
-    bandwidths vmapped in one program, including a query with fewer than m neighbours."""
-    cfg = CFG.replace(kernel_k=8, max_bandwidth=0.1)
-    grid = dict(bandwidth=[0.02, 0.05, 0.05, 0.1, 0.03], kernel_k=[8, 8, 4, 16, 0],
-                kernel_range=[4.0, 2.0, 4.0, 1.5, 4.0], region_scale=[1.0, 0.5, 0.0, 1.0, 0.3])
-    params = HedgerParams.create(cfg, **{k: np.asarray(v) for k, v in grid.items()})
-    S, A, V = _data(5)
-    mem = add_points(cfg, init_memory(cfg), S, A, V)
-    P = np.concatenate([S, A], 1)
-    queries = [(f32([0.15, 0.12]), f32([0.02])), (f32([0.29, 0.01]), f32([-0.09])),
-               (f32([0.55, 0.55]), f32([0.0]))]
-
-    def ref_of(i):
-        row = {k: np.asarray(v)[i] for k, v in params._asdict().items()}
-        r = _ref(row)
-        r.kernel_k, r.kernel_range = int(row["kernel_k"]), float(row["kernel_range"])
-        r.region_scale = float(row["region_scale"])
-        return r
-
-    pred = jax.jit(jax.vmap(lambda p, s, a: predict(cfg, mem, s, a, p), (0, None, None)))
-    for s, a in queries:
-        got = pred(params, s, a)
-        for i in range(5):
-            want = ref_of(i).predict(P, V, len(V), np.concatenate([s, a]))
-            if want.ambiguous:
-                continue
-            assert bool(got[1][i]) == want.known, (i, s)
-            assert float(got[0][i]) == pytest.approx(want.value, rel=2e-4, abs=2e-5), (i, s)
-    tr = Transition(obs=jnp.asarray(queries[0][0]), action=jnp.asarray(queries[0][1]),
-                    reward=jnp.float32(0.1), next_obs=jnp.asarray(f32([0.16, 0.13])),
-                    terminated=jnp.bool_(False), valid=jnp.bool_(True))
-    mems, infos = jax.jit(jax.vmap(lambda p: train_step(cfg, mem, tr, params=p)))(params)
-    for i in range(5):
-        _, new_V, q, _, q_new, _ = ref_train_step(ref_of(i), P, V, len(V), queries[0][0],
-                                                  queries[0][1], 0.1, f32([0.16, 0.13]), False)
-        assert float(infos.q_new[i]) == pytest.approx(q_new, rel=2e-4, abs=2e-5), i
-        np.testing.assert_allclose(np.asarray(mems.values[i])[:len(V) + 1], new_V,
-                                   rtol=2e-4, atol=2e-5, err_msg=str(i))
-
-
 def test_log_values_match_the_reference():
     """value_eps > 0: the memory stores sign(q) log1p(|q| / eps) and fits those; predictions
     map the fit back. Values spanning orders of magnitude (gamma^steps), predictions and a

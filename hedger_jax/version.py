@@ -1,0 +1,2 @@
+"""The package version (one place: the package and checkpoints read it)."""
+__version__ = "0.2.0"
