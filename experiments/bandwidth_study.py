@@ -19,7 +19,7 @@ import sys
 import time
 from typing import Any, Dict, List
 
-from hedger_jax.config import ADAPTIVE, ADAPTIVE_CONTINUOUS
+from hedger_jax.presets import ADAPTIVE, ADAPTIVE_CONTINUOUS
 
 #: Named methods: ``HedgerParams`` settings on top of the initial bandwidth
 #: (``action_scale``: the continuous action's factor, 0.5 = from its bounds [-1, 1]).

@@ -14,8 +14,11 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, Dict, Optional, Tuple
 
-import hedger_jax
 from hedger_jax.agent import RunConfig
+from hedger_jax.presets import (ADAPTIVE_CONTINUOUS_PARAMS, ADAPTIVE_PARAMS, CORRIDOR,
+                                CORRIDOR_ADAPTIVE_PARAMS, CORRIDOR_ENV_PARAMS,
+                                CORRIDOR_RUN, CORRIDOR_SCALE_FACTORS, MOUNTAIN_CAR,
+                                MOUNTAIN_CAR_CONTINUOUS)
 
 MODES = ("quick", "full")
 
@@ -33,36 +36,9 @@ PAPER = {
     "corridor_best": 70.0,
 }
 
-MOUNTAIN_CAR = dict(bandwidth=0.015, alpha=0.8, gamma=0.8)
-#: Continuous actions: the action is scaled by 0.1 so the whole range [-1, 1] spans 0.2 in
-#: scaled units, i.e. ~6 neighbour radii (docs/reproduction.md, "Sensitivity").
-MOUNTAIN_CAR_CONTINUOUS = dict(MOUNTAIN_CAR, action_scale=0.1)
-#: Corridor (see experiments/CORRIDOR_NOTES.md): h = 0.05, actions raw (rad/s), and the
-#: distance-to-end dimension weighted 10x less than the [0, 1] scaling (the value changes
-#: smoothly along the corridor, the steering decision does not depend on it).
-CORRIDOR = dict(bandwidth=0.05, alpha=0.2, gamma=0.99, action_scale=1.0)
-CORRIDOR_SCALE_FACTORS = (1.0, 1.0, 0.1)
-#: Training runs start at the beginning of the evaluated section, as the robot's runs did.
-CORRIDOR_PARAMS = (("train_x_max", 0.5),)
-#: The adaptive lines (beyond the paper): ``hedger_jax.ADAPTIVE``, one kernel width read
-#: from the stored data, fitting log-scale values. Continuous actions (mountain car and the
-#: corridor): the same settings (``ADAPTIVE_CONTINUOUS``), with the action scaled from its
-#: bounds like the states ([-1, 1] -> x0.5: no hand-picked factor); the corridor's
-#: observation is scaled only from its bounds (no per-dimension weights).
-ADAPTIVE_PARAMS = dict(hedger_jax.ADAPTIVE)
-ADAPTIVE_CONTINUOUS_PARAMS = dict(hedger_jax.ADAPTIVE_CONTINUOUS, action_scale=0.5)
-#: The corridor's adaptive line: a wider span, 48 of the 1024 pooled points (m = 4 leaves its
-#: four-dimensional inputs "don't know" almost everywhere); where the greedy policy knows no
-#: action it guesses from the fits (``guess_unknown``: random actions crashed it); alpha = 1
-#: (the kernel averages; stored values no longer lag their targets); a soft greedy choice
-#: (``greedy_temperature``: near alignment the turn commands' values differ by less than the
-#: fits' noise); calibrated values far from the goal (``replay_floor`` and
-#: ``clip_to_neighbours``: without them the first runs' "don't know" zeros dragged the values
-#: there to 1e-5 of the truth) and a hull check widened by half (``ivh_tol=0.5``: the
-#: controller's runs leave each state one action). docs/adaptive-kernel.md, Corridor.
-CORRIDOR_ADAPTIVE_PARAMS = dict(hedger_jax.ADAPTIVE_CONTINUOUS, bandwidth_k=48,
-                                guess_unknown=True, alpha=1.0, greedy_temperature=0.3,
-                                replay_floor=True, clip_to_neighbours=True, ivh_tol=0.5)
+#: The per-environment settings are ``hedger_jax.presets`` (``Hedger``'s defaults too).
+#: A variant holds env-params overrides as sorted (name, value) pairs (hashable).
+CORRIDOR_PARAMS = tuple(sorted(CORRIDOR_ENV_PARAMS.items()))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -211,9 +187,8 @@ def build_figure(name: str, mode: str = "quick") -> Figure:
             label="HEDGER (paper)",
             env="corridor",
             hedger=_items(CORRIDOR, capacity=12_000),
-            run=RunConfig(n_blocks=6, episodes_per_block=5, exploration="gaussian",
-                          noise_std=0.3, eval_episodes=100 if full else 40,
-                          eval_max_steps=200),
+            run=RunConfig(n_blocks=6, episodes_per_block=5, **CORRIDOR_RUN,
+                          eval_episodes=100 if full else 40, eval_max_steps=200),
             phase1="hand_coded",
             phase1_episodes=25,
             x_axis="episodes",

@@ -19,7 +19,8 @@ per-program XLA options; ``hedger_jax.cpu.configure()`` tunes the whole process 
 """
 from hedger_jax import cpu
 from hedger_jax.cpu import jit
-from hedger_jax.config import ADAPTIVE, ADAPTIVE_CONTINUOUS, HedgerConfig, StaticFieldError
+from hedger_jax.config import HedgerConfig, StaticFieldError
+from hedger_jax.presets import ADAPTIVE, ADAPTIVE_CONTINUOUS
 from hedger_jax.params import HedgerParams, InvalidParamsError, check_params
 from hedger_jax.greedy import greedy_action, greedy_value, maximise_1d
 from hedger_jax.memory import (FLAG_FULL, FLAG_NONFINITE, Memory, MemoryFullError,

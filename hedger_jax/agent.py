@@ -469,6 +469,59 @@ def _phase1_fn(env, env_params, config: HedgerConfig, phase1, max_steps: int):
     return learn_policy
 
 
+def _block_loop(env: Any, env_params: Any, config: HedgerConfig, run: RunConfig,
+                max_steps: int, params: Optional[HedgerParams], n_episodes: jax.Array,
+                target: jax.Array, evaluation: tuple):
+    """(cond, body) of a block's loop over episodes: training episodes while fewer than
+    ``n_episodes`` (or ``target`` points) were run, then the evaluation episodes from
+    ``evaluation`` = (first observations (n, S), env states (n, ...), keys (n, 2)).
+
+    The carry: (memory, points, episodes, training steps, key, evaluation episodes done,
+    evaluation steps (n,), evaluation successes (n,))."""
+    eval_obs0, eval_states0, eval_keys = evaluation
+    n_eval = int(run.eval_episodes)
+
+    def training(c):
+        _, points, n_ep = c[:3]
+        if run.episodes_per_block is not None:
+            return n_ep < n_episodes
+        return points < target
+
+    def cond(c):
+        return training(c) | (c[5] < n_eval)
+
+    def body(c):
+        memory, points, n_ep, steps, k, j, eval_steps, eval_success = c
+        train_now = training(c)
+        k_next, k_ep = jax.random.split(k)
+        k_reset, k_run = jax.random.split(k_ep)
+        obs0, s0 = env.reset(k_reset, env_params)
+        e = jnp.minimum(j, n_eval - 1)
+        obs0 = jnp.where(train_now, obs0, eval_obs0[e])
+        s0 = jax.tree_util.tree_map(lambda a, b: jnp.where(train_now, a, b[e]), s0,
+                                    eval_states0)
+        # The data-chosen bandwidth (if any) read once, for the rollout and its replay.
+        p_ep = with_data_bandwidth(config, memory, params)
+        act = training_act(config, run, memory, ~train_now, p_ep)
+        ep, length, success, record = _rollout(
+            env, env_params, act, jnp.where(train_now, k_run, eval_keys[e]), max_steps,
+            obs0, s0, limit=jnp.where(train_now, max_steps, run.eval_max_steps))
+        memory = jax.lax.cond(
+            train_now,
+            lambda m: refresh_index(config, train_prefix(config, m, ep, length, record, p_ep)),
+            lambda m: m, memory)
+        learnt = jnp.where(train_now, length, 0)
+        at = jnp.where(train_now, n_eval, j)                     # n_eval: not recorded
+        eval_steps = eval_steps.at[at].set(
+            jnp.where(success, length, run.eval_max_steps).astype(jnp.float32), mode="drop")
+        eval_success = eval_success.at[at].set(success, mode="drop")
+        return (memory, points + learnt, n_ep + train_now.astype(jnp.int32),
+                steps + learnt, jnp.where(train_now, k_next, k),
+                j + (~train_now).astype(jnp.int32), eval_steps, eval_success)
+
+    return cond, body
+
+
 def make_train(env: Any, config: HedgerConfig, run: RunConfig, *, env_params: Any = None,
                phase1: Any = None, phase1_max_steps: int = 1000) -> Train:
     """Build the pure functions of one seed's run (see the module docstring).
@@ -519,46 +572,8 @@ def make_train(env: Any, config: HedgerConfig, run: RunConfig, *, env_params: An
         eval_obs0, eval_states0 = env.evaluation_starts(k_starts, env_params, n_eval)
         eval_keys = jax.random.split(k_runs, n_eval)
 
-        def training(c):
-            _, points, n_ep = c[:3]
-            if run.episodes_per_block is not None:
-                return n_ep < n_episodes
-            return points < target
-
-        def cond(c):
-            return training(c) | (c[5] < n_eval)
-
-        def body(c):
-            memory, points, n_ep, steps, k, j, eval_steps, eval_success = c
-            train_now = training(c)
-            k_next, k_ep = jax.random.split(k)
-            k_reset, k_run = jax.random.split(k_ep)
-            obs0, s0 = env.reset(k_reset, env_params)
-            e = jnp.minimum(j, n_eval - 1)
-            obs0 = jnp.where(train_now, obs0, eval_obs0[e])
-            s0 = jax.tree_util.tree_map(lambda a, b: jnp.where(train_now, a, b[e]), s0,
-                                        eval_states0)
-
-            # The data-chosen bandwidth (if any) read once, for the rollout and its replay.
-            p_ep = with_data_bandwidth(config, memory, params)
-            act = training_act(config, run, memory, ~train_now, p_ep)
-            ep, length, success, record = _rollout(
-                env, env_params, act, jnp.where(train_now, k_run, eval_keys[e]), max_steps,
-                obs0, s0, limit=jnp.where(train_now, max_steps, run.eval_max_steps))
-            memory = jax.lax.cond(
-                train_now,
-                lambda m: refresh_index(config, train_prefix(config, m, ep, length, record,
-                                                             p_ep)),
-                lambda m: m, memory)
-            learnt = jnp.where(train_now, length, 0)
-            at = jnp.where(train_now, n_eval, j)                     # n_eval: not recorded
-            eval_steps = eval_steps.at[at].set(
-                jnp.where(success, length, run.eval_max_steps).astype(jnp.float32), mode="drop")
-            eval_success = eval_success.at[at].set(success, mode="drop")
-            return (memory, points + learnt, n_ep + train_now.astype(jnp.int32),
-                    steps + learnt, jnp.where(train_now, k_next, k),
-                    j + (~train_now).astype(jnp.int32), eval_steps, eval_success)
-
+        cond, body = _block_loop(env, env_params, config, run, max_steps, params, n_episodes,
+                                 target, (eval_obs0, eval_states0, eval_keys))
         init_c = (state.memory, state.points, jnp.zeros((), jnp.int32),
                   jnp.zeros((), jnp.int32), k_block, jnp.zeros((), jnp.int32),
                   jnp.zeros((n_eval,), jnp.float32), jnp.zeros((n_eval,), bool))

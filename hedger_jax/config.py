@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import types
 from typing import Any, Dict, Optional, Tuple
 
 import numpy as np
@@ -39,16 +38,6 @@ AUTO_GRID_MAX_FRACTION = 0.02
 #: Stored points the data-chosen width (``bandwidth_k``) counts neighbours among
 #: (``hedger_jax.data_bandwidth``): ``bandwidth_k`` is at most this.
 BANDWIDTH_POOL = 1024
-
-#: The adaptive kernel (beyond the paper; docs/adaptive-kernel.md): one kernel width read
-#: from the stored data once per episode, at most 2x ``bandwidth``, fitting log-scale values;
-#: the continuous greedy search breaks ties at random. ``HedgerConfig(..., **ADAPTIVE)``.
-ADAPTIVE = types.MappingProxyType({"bandwidth_k": 4, "kernel_range": 2.0, "value_eps": 1e-6,
-                                   "random_ties": True})
-#: For continuous actions: the same, with the width narrowed at the local-linear rate beyond
-#: 16,384 stored points (``bandwidth_shrink``). Scale the action from its bounds.
-ADAPTIVE_CONTINUOUS = types.MappingProxyType({**ADAPTIVE, "bandwidth_shrink": True})
-
 
 def selection_radius(bandwidth, min_weight, kernel_range=1.0, bandwidth_k=0):
     """The default k_thresh: where the widest kernel's weight falls to ``min_weight``,

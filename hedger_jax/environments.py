@@ -1,4 +1,4 @@
-"""Which environment a ``Hedger`` learner runs on, and the host loop for Gymnasium envs.
+"""Which environment a ``Hedger`` learner runs on, and how a Gymnasium env is presented to it.
 
 ``resolve_env`` turns what a user passes to ``Hedger`` into one of two kinds:
 
@@ -8,11 +8,7 @@
   any functional env object. Whole episodes then run inside jitted code.
 * a ``GymnasiumEnv``: any other Gymnasium env (an id for ``gymnasium.make``, or an instance)
   whose observation space is a ``Box`` of shape (S,) and whose action space is ``Discrete``
-  or a ``Box`` of shape (1,). ``Hedger`` drives it from the host: one jitted epsilon-greedy
-  action per step (``explore_step``), the episode's transitions in NumPy buffers
-  (``EpisodeBuffer``), and after the episode a jitted reverse replay of the buffer padded to
-  the episode cap (``replay_episode``: compiled once per config and cap) followed by the
-  neighbour index's refresh.
+  or a ``Box`` of shape (1,). ``Hedger`` drives it from the host (``hedger_jax.host_loop``).
 
 How a Gymnasium env is presented to HEDGER (``GymnasiumEnv``):
 
@@ -31,25 +27,21 @@ How a Gymnasium env is presented to HEDGER (``GymnasiumEnv``):
   loop. A transition's ``terminated`` is Gymnasium's ``terminated`` only: a truncation (the
   env's or the cap's) ends the episode but is never a terminal state.
 
-Layering: this module and ``learner`` are the only parts of ``hedger_jax`` that know ``envs``
-and Gymnasium; both are imported lazily, so ``import hedger_jax`` imports neither.
+Layering: this module and the learner's modules are the only parts of ``hedger_jax`` that know
+``envs`` and Gymnasium; both are imported lazily, so ``import hedger_jax`` imports neither.
+The host loop's pieces (``run_episode``, ``explore_step``, ...) live in ``host_loop`` and are
+re-exported here.
 """
 from __future__ import annotations
 
 import copy
-import functools
 from typing import Any, Callable, Dict, NamedTuple, Optional, Tuple
 
-import jax
 import numpy as np
 
-
-from hedger_jax.agent import RunConfig, explore_action, train_prefix
-from hedger_jax.config import HedgerConfig
-from hedger_jax.cpu import jit as _jit
-from hedger_jax.greedy import greedy_action
-from hedger_jax.memory import Memory, refresh_index
-from hedger_jax.train import Transition
+from hedger_jax.host_loop import (EpisodeBuffer, EpisodeResult,  # noqa: F401 (re-exported)
+                                  explore_step, greedy_step, refresh, replay_episode,
+                                  run_episode, seed_from_key)
 
 __all__ = ["GYM_IDS", "DEFAULT_MAX_STEPS", "ACTION_SPAN", "GymnasiumEnv", "ResolvedEnv",
            "resolve_env", "make_env", "is_functional_name", "check_spaces", "EpisodeBuffer",
@@ -320,102 +312,3 @@ def _make_by_id(env_id: str, env_kwargs: Dict[str, Any]) -> Any:
     import gymnasium
 
     return gymnasium.make(env_id, **env_kwargs)
-
-
-# ------------------------------------------------------------------------------------------
-# Jitted pieces of the host loop (module level: compiled once per static settings)
-# ------------------------------------------------------------------------------------------
-def _step_key(key: jax.Array, t: jax.Array) -> jax.Array:
-    """The acting key of step t of an episode keyed ``key`` (as ``agent.rollout`` derives it)."""
-    return jax.random.fold_in(jax.random.fold_in(key, t), 0)
-
-
-@functools.partial(_jit, static_argnames=("config", "run"))
-def explore_step(memory: Memory, obs: jax.Array, key: jax.Array, t: jax.Array, *,
-                 config: HedgerConfig, run: RunConfig) -> jax.Array:
-    """The epsilon-greedy action value (A,) for obs (S,) at step t () of an episode keyed
-    ``key`` (``agent.explore_action``)."""
-    return explore_action(config, run, memory, obs, _step_key(key, t))
-
-
-@functools.partial(_jit, static_argnames=("config",))
-def greedy_step(memory: Memory, obs: jax.Array, key: jax.Array, t: jax.Array, *,
-                config: HedgerConfig) -> jax.Array:
-    """The greedy action value (A,) for obs (S,) at step t () of an episode keyed ``key``
-    (ties and "don't know" resolved with that step's key)."""
-    return greedy_action(config, memory, obs, _step_key(key, t))[0]
-
-
-@functools.partial(_jit, static_argnames=("config",), donate_argnames=("memory",))
-def replay_episode(memory: Memory, episode: Transition, length: jax.Array, *,
-                   config: HedgerConfig) -> Memory:
-    """Reverse replay of an episode's first ``length`` () steps (leading axis T, the padded
-    cap) then the neighbour index's refresh -> memory."""
-    return refresh_index(config, train_prefix(config, memory, episode, length))
-
-
-@functools.partial(_jit, static_argnames=("config",))
-def refresh(memory: Memory, *, config: HedgerConfig) -> Memory:
-    """The neighbour index brought up to date (``memory.refresh_index``)."""
-    return refresh_index(config, memory)
-
-
-def seed_from_key(key: Any) -> int:
-    """A Gymnasium reset seed (an int in [0, 2**64)) from a raw PRNG key uint32 (2,)."""
-    return int.from_bytes(np.asarray(key, np.uint32).astype("<u4").tobytes(), "little")
-
-
-# ------------------------------------------------------------------------------------------
-# Episodes on the host
-# ------------------------------------------------------------------------------------------
-class EpisodeBuffer:
-    """NumPy buffers of one episode, padded to ``length`` steps (reused episode after
-    episode): obs (T, S), action (T, A), reward (T,), next_obs (T, S), terminated (T,)."""
-
-    def __init__(self, length: int, obs_dim: int, action_dim: int):
-        self.length = int(length)
-        self.obs = np.zeros((length, obs_dim), np.float32)
-        self.action = np.zeros((length, action_dim), np.float32)
-        self.reward = np.zeros((length,), np.float32)
-        self.next_obs = np.zeros((length, obs_dim), np.float32)
-        self.terminated = np.zeros((length,), bool)
-
-    def transition(self, n: int) -> Transition:
-        """The first n steps as a ``Transition`` of leading axis T (later steps invalid)."""
-        return Transition(self.obs, self.action, self.reward, self.next_obs, self.terminated,
-                          np.arange(self.length) < n)
-
-
-class EpisodeResult(NamedTuple):
-    """length: steps taken; ret: sum of rewards; terminated: ended by Gymnasium's
-    ``terminated`` (not by a truncation or the cap)."""
-
-    length: int
-    ret: float
-    terminated: bool
-
-
-def run_episode(env: GymnasiumEnv, act: Callable[[np.ndarray, int], Any], seed: int,
-                max_steps: int, buffer: Optional[EpisodeBuffer] = None) -> EpisodeResult:
-    """One episode on the host: ``env.reset(seed=seed)``, then ``act(obs float32 (S,), t)
-    -> action value (A,)`` and ``env.step`` until terminated, truncated or ``max_steps``
-    steps. ``buffer`` (optional) receives the transitions; ``terminated`` there is
-    Gymnasium's ``terminated`` only (a truncation is never a terminal state)."""
-    gym_env = env.gym_env
-    obs, _ = gym_env.reset(seed=seed)
-    obs = np.asarray(obs, np.float32)
-    total, t, terminated = 0.0, 0, False
-    while t < max_steps:
-        value = np.asarray(act(obs, t), np.float32)
-        next_obs, reward, terminated, truncated, _ = gym_env.step(env.gym_action(value))
-        next_obs = np.asarray(next_obs, np.float32)
-        terminated = bool(terminated)
-        if buffer is not None:
-            buffer.obs[t], buffer.action[t], buffer.reward[t] = obs, value, reward
-            buffer.next_obs[t], buffer.terminated[t] = next_obs, terminated
-        total += float(reward)
-        t += 1
-        obs = next_obs
-        if terminated or truncated:
-            break
-    return EpisodeResult(t, total, terminated)

@@ -128,6 +128,34 @@ def search_grid(low: float, high: float, n_samples: int) -> jax.Array:
     return jnp.linspace(low, high, n_samples, dtype=jnp.float32)
 
 
+def _break_ties(ties, fs: jax.Array, best: jax.Array, n_samples: int):
+    """Equal best values at two or more of the first ``n_samples`` samples: one of them at
+    random (while every value is still the same, ties to the first would always take the low
+    end). ties: (switch bool (), U[0, 1) draw ()); fs (n,). Returns (best (), whether the
+    draw was used (), the drawn sample ())."""
+    on, u_tie = ties
+    tied = (jnp.arange(fs.shape[0]) < n_samples) & (fs == fs[best])
+    count = jnp.sum(tied)
+    rank = jnp.minimum((u_tie * count).astype(jnp.int32), count - 1)
+    pick = _first_index(tied & (jnp.cumsum(tied) - 1 == rank))
+    use = (count >= 2) & on
+    return jnp.where(use, pick, best), use, pick
+
+
+def _soft_choice(soft, xs, fs, filled, best, x, fx):
+    """With soft = (temperature (), fit) and a temperature > 0: the means of the evaluated
+    samples xs (n,) and their values fs (n,) weighted by exp((fit(f) - fit(f_best)) / T);
+    else (x, fx) unchanged."""
+    temperature, fit = soft
+    y = fit(fs)
+    on = temperature > 0
+    # The best sample has weight 1, so the sum is >= 1; unfilled slots weigh 0.
+    w = jnp.where(filled, jnp.exp(jnp.minimum(
+        (y - y[best]) / jnp.where(on, temperature, 1.0), 0.0)), 0.0)
+    return (jnp.where(on, jnp.sum(w * xs) / jnp.sum(w), x),
+            jnp.where(on, jnp.sum(w * jnp.where(filled, fs, 0.0)) / jnp.sum(w), fx))
+
+
 def search_1d(f: Callable[[jax.Array], Tuple[jax.Array, ...]], low: float, high: float,
               n_samples: int, iters: int, tol: float, initial=None, with_count: bool = False,
               with_aux: bool = False, ties=None, soft=None):
@@ -197,28 +225,13 @@ def search_1d(f: Callable[[jax.Array], Tuple[jax.Array, ...]], low: float, high:
         lambda c: c[6], body, init)
     best = _argmax_float(jnp.where(filled, fs, _NEG))
     if ties is not None:
-        # Equal best values at two or more grid samples: one of them at random (while
-        # every value is still the same, ties to the first would always take the low end).
-        on, u_tie = ties
-        tied = (jnp.arange(n_total) < n_samples) & (fs == fs[best])
-        count = jnp.sum(tied)
-        rank = jnp.minimum((u_tie * count).astype(jnp.int32), count - 1)
-        pick = _first_index(tied & (jnp.cumsum(tied) - 1 == rank))
-        use = (count >= 2) & on
-        best = jnp.where(use, pick, best)
+        best, use, pick = _break_ties(ties, fs, best, n_samples)
         if with_aux:
             best_aux = jax.tree_util.tree_map(
                 lambda a, b: jnp.where(use, a[jnp.minimum(pick, n_samples - 1)], b), aux0, best_aux)
     x, fx = xs[best], fs[best]
     if soft is not None:
-        temperature, fit = soft
-        y = fit(fs)
-        on = temperature > 0
-        # The best sample has weight 1, so the sum is >= 1; unfilled slots weigh 0.
-        w = jnp.where(filled, jnp.exp(jnp.minimum(
-            (y - y[best]) / jnp.where(on, temperature, 1.0), 0.0)), 0.0)
-        x = jnp.where(on, jnp.sum(w * xs) / jnp.sum(w), x)
-        fx = jnp.where(on, jnp.sum(w * jnp.where(filled, fs, 0.0)) / jnp.sum(w), fx)
+        x, fx = _soft_choice(soft, xs, fs, filled, best, x, fx)
     out = (x, fx, any_known) + ((n_evals,) if with_count else ())
     return out + ((aux0, best_aux) if with_aux else ())
 

@@ -809,41 +809,57 @@ def _recent_segments(geo: Geometry, index: GridIndex, first, last, live):
     return a, jnp.where(live, jnp.maximum(b - a, 0), 0)
 
 
-def _scan(config, geo: Geometry, index: GridIndex, head, z, lv, tab_start, tab_len,
-          rec_start, rec_len):
-    """The k nearest candidates of query z (d,) within level ``lv``'s radius -> (slots int32
-    (k,), squared distances float32 (k,)), in no particular order, +inf where fewer.
-
-    The candidate sequence: per row, its table segment at level lv (tab_start, tab_len
-    (rows,)), then its recent segment (rec_start, rec_len (rows,)); last, the writes since
-    the merge beyond the first R. It is read in trips of a ``lax.while_loop`` that keeps the
-    k nearest so far, so any occupancy is exact; a full cell only costs more trips.
-    """
-    L = len(geo.levels)
-    n = index.order.shape[-1]
-    R = geo.recent
-    k = min(config.max_neighbours, n)
-    chunk = chunk_width(config)
-    # Only candidates within the level's radius can be part of an accepted answer.
-    r2 = jnp.asarray([lvl.radius for lvl in geo.levels], jnp.float32)[lv] ** 2
-    n_new = jnp.minimum(index.n_new, n)                        # saturated: ``select``'s brute
+def _segments(n_new, R: int, tab_start, tab_len, rec_start, rec_len):
+    """The candidate sequence's layout: one segment per row (its table part, then its recent
+    part) and one for the writes beyond the first R since the merge. Returns (table (rows + 1,
+    4) int32: per segment its begin in the sequence, table start, table length, recent start;
+    sub_begin, sub_delta, sub_len, sub_col (2 (rows + 1),): per sub-segment its begin, its
+    column shift's change from the previous one (``_candidate_columns``), its length and first
+    column; total (): the sequence's length)."""
     zero = jnp.zeros((1,), jnp.int32)
-    # One segment per row (table part, then recent part) and one for the later writes; per
-    # segment: (begin in the candidate sequence, table start, table length, recent start).
     tab_len = jnp.concatenate([tab_len, zero]).astype(jnp.int32)
     over_len = jnp.maximum(n_new - R, 0)
     lengths = tab_len + jnp.concatenate([rec_len, over_len[None]]).astype(jnp.int32)
     ends = jnp.cumsum(lengths)
     begins = ends - lengths
-    total = ends[-1]
     t_start = jnp.concatenate([tab_start, zero]).astype(jnp.int32)
     r_start = jnp.concatenate([rec_start, jnp.full((1,), R, jnp.int32)]).astype(jnp.int32)
     table = jnp.stack([begins, t_start, tab_len, r_start], 1)
-    # Sub-segments (a segment's table part, then its recent part): a candidate's column is its
-    # position plus its sub-segment's shift (``_candidate_columns``).
+    # A candidate's column is its position plus its sub-segment's shift.
     sub_begin = jnp.stack([begins, begins + tab_len], 1).reshape(-1)
     shift = jnp.stack([t_start - begins, r_start - begins - tab_len], 1).reshape(-1)
     sub_delta = shift - jnp.concatenate([zero, shift[:-1]])
+    sub_len = jnp.stack([tab_len, lengths - tab_len], 1).reshape(-1)
+    sub_col = jnp.stack([t_start, r_start], 1).reshape(-1)
+    return table, sub_begin, sub_delta, sub_len, sub_col, ends[-1]
+
+
+def _append(best, n_best, d2, slot, ok):
+    """The kept (squared distances (k,), slots (k,)) whose first ``n_best`` are finite, with
+    the accepted candidates (``ok`` (w,)) of (d2, slot) (w,) after them, as many as fit.
+    Gathered, not scattered (XLA's CPU scatter is a loop of single updates): entry
+    n_best + r takes the r-th accepted candidate."""
+    k, width = best[0].shape[0], d2.shape[0]
+    r = jnp.arange(k, dtype=jnp.int32) - n_best                    # (k,)
+    src = true_positions(ok, r)
+    new = (r >= 0) & (src < width)
+    src = jnp.minimum(src, width - 1)
+    return jnp.where(new, d2[src], best[0]), jnp.where(new, slot[src], best[1])
+
+
+def _scan(config, geo: Geometry, index: GridIndex, head, z, lv, tab_start, tab_len,
+          rec_start, rec_len):
+    """The k nearest candidates of query z (d,) within level ``lv``'s radius -> (slots int32
+    (k,), squared distances float32 (k,)), in no particular order, +inf where fewer. The
+    candidate sequence (``_segments``) is read in trips of a ``lax.while_loop`` that keeps
+    the k nearest so far, so any occupancy is exact; a full cell only costs more trips."""
+    L, n, chunk = len(geo.levels), index.order.shape[-1], chunk_width(config)
+    k = min(config.max_neighbours, n)
+    # Only candidates within the level's radius can be part of an accepted answer.
+    r2 = jnp.asarray([lvl.radius for lvl in geo.levels], jnp.float32)[lv] ** 2
+    n_new = jnp.minimum(index.n_new, n)                        # saturated: ``select``'s brute
+    table, sub_begin, sub_delta, sub_len, sub_col, total = _segments(
+        n_new, geo.recent, tab_start, tab_len, rec_start, rec_len)
     if config.full_policy == "overwrite_oldest":
         h0 = jax.lax.rem(head - n_new + n, n)
 
@@ -863,8 +879,6 @@ def _scan(config, geo: Geometry, index: GridIndex, head, z, lv, tab_start, tab_l
 
     # The windowed first trip (``_first_trip``) flags no stale entries: not for a ring buffer.
     by_segments = L > 1 and config.full_policy != "overwrite_oldest" and n >= _WINDOW
-    sub_len = jnp.stack([tab_len, lengths - tab_len], 1).reshape(-1)
-    sub_col = jnp.stack([t_start, r_start], 1).reshape(-1)
 
     def trip(p0, best_d2, best_idx, width, fresh=False):
         p = p0 + jnp.arange(width, dtype=jnp.int32)                  # (width,)
@@ -894,34 +908,22 @@ def _scan(config, geo: Geometry, index: GridIndex, head, z, lv, tab_start, tab_l
         # One level: the kept finite entries are a prefix (a selection leaves all k finite)
         # and the new ones usually fit after them; only overflowing queries select.
         n_best = jnp.sum(jnp.isfinite(best_d2).astype(jnp.int32))
-
-        def append(best):
-            # Gathered, not scattered (XLA's CPU scatter is a loop of single updates): entry
-            # n_best + r takes the r-th accepted candidate.
-            r = jnp.arange(k, dtype=jnp.int32) - n_best                    # (k,)
-            src = true_positions(ok, r)
-            new = (r >= 0) & (src < width)
-            src = jnp.minimum(src, width - 1)
-            return jnp.where(new, d2[src], best[0]), jnp.where(new, slot[src], best[1])
-
         over = n_best + jnp.sum(ok.astype(jnp.int32)) > k
-        return (p0 + width,) + batch_cond(over, top, append, (best_d2, best_idx),
-                                          compact=_RESCAN_GROUP)
+        return (p0 + width,) + batch_cond(
+            over, top, lambda best: _append(best, n_best, d2, slot, ok), (best_d2, best_idx),
+            compact=_RESCAN_GROUP)
 
     carry = (jnp.zeros((), jnp.int32), jnp.full((k,), jnp.inf, jnp.float32),
              jnp.zeros((k,), jnp.int32))
+    rest = lambda c: jax.lax.while_loop(lambda c: c[0] < total,  # noqa: E731
+                                        lambda c: trip(*c, chunk), c)
     if L == 1:
         # One level (small memories, few candidates per row): one loop, one copy of the trip.
-        _, best_d2, best_idx = jax.lax.while_loop(lambda c: c[0] < total,
-                                                  lambda c: trip(*c, chunk), carry)
+        _, best_d2, best_idx = rest(carry)
         return best_idx, best_d2
     # Several levels: one wide first trip covers most queries' candidates; only the queries
     # with more go on, so a vmapped batch does not run its slowest query's trips for all.
     carry = trip(*carry, first_trips(config) * chunk, fresh=True)
-
-    def rest(c):
-        return jax.lax.while_loop(lambda c: c[0] < total, lambda c: trip(*c, chunk), c)
-
     _, best_d2, best_idx = batch_cond(carry[0] < total, rest, lambda c: c, carry,
                                       compact=_REST_GROUP)
     best_idx = candidates(best_idx, _candidate_columns)[0]            # positions -> slots
