@@ -54,14 +54,20 @@ def test_k_min_lower_bound_depends_on_dim():
     assert cfg.k_min == 6
 
 
-def test_valid_edge_values_accepted():
-    HedgerConfig(1, 1, alpha=0.0, gamma=0.0)
-    HedgerConfig(1, 1, alpha=1.0, gamma=1.0)
-    HedgerConfig(1, 1, capacity=1)
-    HedgerConfig(1, 1, k_min=3, max_neighbours=3)
-    HedgerConfig(1, 1, full_policy="overwrite_oldest")
-    HedgerConfig(1, 1, full_policy="error")
-    HedgerConfig(2, 1, discrete_actions=((-1.0,), (0.0,), (1.0,)))
+@pytest.mark.parametrize("kwargs", [
+    dict(alpha=0.0, gamma=0.0), dict(alpha=1.0, gamma=1.0), dict(capacity=1),
+    dict(k_min=3, max_neighbours=3), dict(full_policy="overwrite_oldest"),
+    dict(full_policy="error"), dict(discrete_actions=((-1.0,), (0.0,), (1.0,))),
+    dict(min_weight=1e-9, ivh_tol=0.0, value_eps=0.0, greedy_temperature=0.0),
+])
+def test_valid_edge_values_are_kept_as_given(kwargs):
+    """Values on the edge of their ranges are accepted and stored as given (as Python numbers
+    of the field's kind), and the config round-trips through replace."""
+    cfg = HedgerConfig(1, 1, **kwargs)
+    for name, value in kwargs.items():
+        assert getattr(cfg, name) == value, name
+        assert type(getattr(cfg, name)) is type(value), name
+    assert cfg.replace() == cfg and HedgerConfig(1, 1).replace(**kwargs) == cfg
 
 
 # ---------------------------------------------------------------- derived properties
