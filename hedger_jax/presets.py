@@ -28,13 +28,19 @@ __all__ = ["ADAPTIVE", "ADAPTIVE_CONTINUOUS", "MOUNTAIN_CAR", "MOUNTAIN_CAR_CONT
 
 _frozen = types.MappingProxyType
 
-#: The adaptive kernel (beyond the paper; docs/adaptive-kernel.md): one kernel width read
-#: from the stored data once per episode, at most 2x ``bandwidth``, fitting log-scale values;
-#: the continuous greedy search breaks ties at random. ``HedgerConfig(..., **ADAPTIVE)``.
+#: The adaptive preset (beyond the paper; docs/adaptive-kernel.md), one for every task: a
+#: kernel width read from the stored data once per episode (at most 2x ``bandwidth``), fitting
+#: log-scale values; ties of the continuous search broken at random; a guess from the fits
+#: where no action is known; the replay's max at least the value just stored for the next
+#: step, with every fit clipped to its neighbours' values (the floor alone diverges); a hull
+#: check widened by half; alpha = 1 (the kernel does the averaging). Chosen on seeds >= 100.
+#: ``HedgerConfig(..., **ADAPTIVE)`` or ``HedgerParams.create(config, **ADAPTIVE)``.
 ADAPTIVE = _frozen({"bandwidth_k": 4, "kernel_range": 2.0, "value_eps": 1e-6,
-                    "random_ties": True})
+                    "random_ties": True, "guess_unknown": True, "replay_floor": True,
+                    "clip_to_neighbours": True, "ivh_tol": 0.5, "alpha": 1.0})
 #: For continuous actions: the same, with the width narrowed at the local-linear rate beyond
-#: 16,384 stored points (``bandwidth_shrink``). Scale the action from its bounds.
+#: 16,384 stored points (``bandwidth_shrink``: it helps continuous actions, hurts discrete
+#: ones). Scale the action from its bounds.
 ADAPTIVE_CONTINUOUS = _frozen({**ADAPTIVE, "bandwidth_shrink": True})
 
 #: Mountain car, discrete actions {-1, 0, 1} kept raw: h = 0.015 is the narrow window in which
@@ -57,16 +63,13 @@ CORRIDOR_ENV_PARAMS = _frozen(dict(train_x_max=0.5))
 #: ([-1, 1] -> x0.5: no hand-picked factor).
 ADAPTIVE_PARAMS = _frozen(dict(ADAPTIVE))
 ADAPTIVE_CONTINUOUS_PARAMS = _frozen(dict(ADAPTIVE_CONTINUOUS, action_scale=0.5))
-#: The corridor's adaptive line (docs/adaptive-kernel.md, Corridor): a wider span (48 of the
-#: 1024 pooled points: m = 4 leaves its 4-D inputs "don't know" almost everywhere); a guess
-#: from the fits where no action is known (random actions crashed it); alpha = 1 (the kernel
-#: averages); a soft greedy choice (near alignment the turn commands' values differ by less
-#: than the fits' noise); calibrated values far from the goal (``replay_floor``,
-#: ``clip_to_neighbours``); a hull check widened by half (the controller's runs leave each
-#: state one action). The observation is scaled only from its bounds.
-CORRIDOR_ADAPTIVE_PARAMS = _frozen(dict(ADAPTIVE_CONTINUOUS, bandwidth_k=48, guess_unknown=True,
-                                        alpha=1.0, greedy_temperature=0.3, replay_floor=True,
-                                        clip_to_neighbours=True, ivh_tol=0.5))
+#: The corridor's adaptive line: the adaptive preset with its two per-task numbers: a wider
+#: span (48 of the 1024 pooled points: m = 4 leaves its 4-D inputs "don't know" almost
+#: everywhere) and a soft greedy choice (near alignment the turn commands' values differ by
+#: less than the fits' noise; it costs mountain car 27 steps). The observation is scaled only
+#: from its bounds.
+CORRIDOR_ADAPTIVE_PARAMS = _frozen(dict(ADAPTIVE_CONTINUOUS, bandwidth_k=48,
+                                        greedy_temperature=0.3))
 
 #: ``Hedger``'s defaults per ``envs.make`` name: ``hedger`` (``HedgerConfig.for_env``
 #: overrides), ``run`` (``RunConfig`` overrides), and optionally ``state_scale_factors`` (S,)
