@@ -129,9 +129,28 @@ def test_resampling_auto_reset_draws_fresh_starts():
 
 
 def test_brax_env_on_real_envs_jit_vmap():
-    for name in ("mountain_car_continuous",):
-        env = brax_training.VmapWrapper(BraxEnv(envs.make(name)))
-        st = jax.jit(env.reset)(jax.random.split(jax.random.PRNGKey(0), 3))
-        st = jax.jit(env.step)(st, jnp.ones((3, env.action_size)))
-        assert st.obs.shape == (3, env.observation_size)
-        assert st.info["rng"].shape == (3, 2)
+    """brax's VmapWrapper over BraxEnv(mountain car): a jitted batch of resets and one step
+    are the functional env's along the documented key path (reset: split the key, reset with
+    the second half; step: split the carried key, step with the second half)."""
+    fenv = envs.make("mountain_car_continuous")
+    params = fenv.default_params()
+    env = brax_training.VmapWrapper(BraxEnv(fenv))
+    keys = jax.random.split(jax.random.PRNGKey(0), 3)
+    st0 = jax.jit(env.reset)(keys)
+    st = jax.jit(env.step)(st0, jnp.ones((3, env.action_size)))
+    assert st.obs.shape == (3, env.observation_size) and st.info["rng"].shape == (3, 2)
+
+    def reference(key):
+        rng, sub = jax.random.split(key)
+        obs0, s = fenv.reset(sub, params)
+        rng, sub = jax.random.split(rng)
+        obs1, _, r, te, tr, _ = fenv.step(sub, s, jnp.ones(1), params)
+        return obs0, obs1, r, (te | tr).astype(jnp.float32), rng
+
+    obs0, obs1, r, done, rng = jax.jit(jax.vmap(reference))(keys)
+    np.testing.assert_array_equal(np.asarray(st0.obs), np.asarray(obs0))
+    np.testing.assert_allclose(np.asarray(st.obs), np.asarray(obs1), rtol=1e-6, atol=1e-8)
+    assert not np.array_equal(np.asarray(st.obs), np.asarray(st0.obs))      # the cars moved
+    np.testing.assert_array_equal(np.asarray(st.reward), np.asarray(r))
+    np.testing.assert_array_equal(np.asarray(st.done), np.asarray(done))
+    np.testing.assert_array_equal(np.asarray(st.info["rng"]), np.asarray(rng))

@@ -38,29 +38,75 @@ CORRIDOR = pytest.param("corridor", marks=pytest.mark.skipif(
     not os.environ.get("HEDGER_JAX_FULL_TESTS"), reason="slow: set HEDGER_JAX_FULL_TESTS=1"))
 
 
+EPISODE_LENGTH = 50
+STEPS = 400
+#: Observations of different states (for mountain car; the corridor's are 3-D).
+PROBE = {"mountain_car_continuous": np.array([[-0.5, 0.0], [-1.0, 0.05], [0.3, -0.03]],
+                                             np.float32),
+         "corridor": np.array([[0.0, 0.0, 10.0], [0.3, 0.4, 6.0], [-0.2, -0.5, 2.0]],
+                              np.float32)}
+
+
+def _check_training_saw_the_env(env_name, params, metrics):
+    """What a broken integration would get wrong: brax's observation normaliser counted
+    every training step's observation (exactly STEPS) and its statistics are those of the
+    env's observations (inside the observation bounds, each dimension varying); evaluation
+    episodes run to the episode length (the time limit is a truncation, not an early end);
+    the deterministic policy acts in the action range and depends on the observation."""
+    import envs
+
+    env = envs.make(env_name)
+    stats = params[0]
+    assert int(stats.count) == STEPS
+    low, high = (np.asarray(b) for b in env.obs_bounds(env.default_params()))
+    mean, std = np.asarray(stats.mean), np.asarray(stats.std)
+    assert np.all((low <= mean) & (mean <= high)), (mean, low, high)
+    assert np.all(std > 0) and np.all(std <= high - low), std
+    assert metrics["eval/avg_episode_length"] == EPISODE_LENGTH
+    assert np.isfinite(metrics["eval/episode_reward"])
+
+
+def _deterministic_actions(make_policy, params, env_name):
+    action, _ = make_policy(params, deterministic=True)(PROBE[env_name], jax.random.PRNGKey(0))
+    action = np.asarray(action)
+    assert action.shape == (3, 1) and np.all(np.abs(action) <= 1.0)
+    assert len(np.unique(action)) == 3                     # depends on the observation
+    return action
+
+
 @pytest.mark.parametrize("env_name", ["mountain_car_continuous", CORRIDOR])
 def test_ppo_trains_end_to_end(env_name):
-    """A few hundred environment steps of brax's PPO: it runs, evaluates and returns a policy
-    that acts in the env's action range."""
+    """A few hundred environment steps of brax's PPO on the env: it trains on the env's
+    observations (``_check_training_saw_the_env``), and the updates change the policy: its
+    deterministic actions differ from those of the initial parameters (brax hands both to
+    ``policy_params_fn``; the run is seeded, so this is deterministic)."""
+    seen = []
     make_policy, params, metrics = train_ppo(
-        env_name, num_timesteps=400, num_envs=4, episode_length=50, unroll_length=5,
-        batch_size=4, num_minibatches=2, num_updates_per_batch=1, num_evals=2,
-        num_eval_envs=4, seed=0)
-    assert "eval/episode_reward" in metrics and np.isfinite(metrics["eval/episode_reward"])
-    policy = make_policy(params, deterministic=True)
-    obs_dim = 2 if env_name.startswith("mountain_car") else 3
-    action, _ = policy(np.zeros((2, obs_dim), np.float32),
-                       jax.random.PRNGKey(0))
-    assert action.shape == (2, 1) and np.all(np.abs(np.asarray(action)) <= 1.0)
+        env_name, num_timesteps=STEPS, num_envs=4, episode_length=EPISODE_LENGTH,
+        unroll_length=5, batch_size=4, num_minibatches=2, num_updates_per_batch=1,
+        num_evals=2, num_eval_envs=4, seed=0, normalize_observations=True,
+        policy_params_fn=lambda step, _, p: seen.append((step, p)))
+    _check_training_saw_the_env(env_name, params, metrics)
+    assert [step for step, _ in seen] == [0, STEPS]
+    trained = _deterministic_actions(make_policy, params, env_name)
+    initial = _deterministic_actions(make_policy, seen[0][1], env_name)
+    assert np.max(np.abs(trained - initial)) > 1e-3
 
 
 @pytest.mark.parametrize("env_name", ["mountain_car_continuous", CORRIDOR])
 def test_sac_trains_end_to_end(env_name):
+    """A few hundred environment steps of brax's SAC (replay buffer prefilled, then one
+    gradient step per env step) on the env's observations (``_check_training_saw_the_env``);
+    the evaluations happen before and after training."""
+    progress = []
     make_policy, params, metrics = train_sac(
-        env_name, num_timesteps=400, num_envs=4, episode_length=50, batch_size=16,
-        min_replay_size=64, max_replay_size=1000, grad_updates_per_step=1, num_evals=2,
-        num_eval_envs=4, seed=0)
-    assert "eval/episode_reward" in metrics and np.isfinite(metrics["eval/episode_reward"])
+        env_name, num_timesteps=STEPS, num_envs=4, episode_length=EPISODE_LENGTH,
+        batch_size=16, min_replay_size=64, max_replay_size=1000, grad_updates_per_step=1,
+        num_evals=2, num_eval_envs=4, seed=0, normalize_observations=True,
+        progress_fn=lambda step, m: progress.append(step))
+    _check_training_saw_the_env(env_name, params, metrics)
+    assert progress == [0, STEPS]
+    _deterministic_actions(make_policy, params, env_name)
 
 
 def test_importing_the_adapter_prints_no_warp_message():

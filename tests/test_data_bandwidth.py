@@ -144,11 +144,13 @@ def test_predictions_training_and_evaluation_use_the_data_width():
     got = jax.jit(lambda: predict(CFG, mem, s, a))()
     assert bool(got[1]) == want.known
     assert float(got[0]) == pytest.approx(want.value, rel=2e-4, abs=2e-5)
-    # The config's bandwidth_k (params None), given params and the resolved fixed width agree.
-    for fn in (lambda p: predict(CFG, mem, s, a, p),
-               lambda p: greedy_action(CFG, mem, s, jax.random.PRNGKey(3), p)):
-        for x, y in zip(fn(params), fn(fixed)):
-            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    # Given params (bandwidth_k from the config: the width read in the program) and the
+    # resolved fixed width agree, in one program for both.
+    both = jax.jit(lambda p: (predict(CFG, mem, s, a, p),
+                              greedy_action(CFG, mem, s, jax.random.PRNGKey(3), p)))
+    for x, y in zip(jax.tree_util.tree_leaves(both(params)),
+                    jax.tree_util.tree_leaves(both(fixed))):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     tr = Transition(obs=s, action=a, reward=jnp.float32(0.1),
                     next_obs=jnp.asarray(f32([0.06, 0.05])), terminated=jnp.bool_(False),
                     valid=jnp.bool_(True))
@@ -159,6 +161,10 @@ def test_predictions_training_and_evaluation_use_the_data_width():
 
 
 def test_evaluation_and_a_swept_run_use_the_data_width():
+    """A run swept over bandwidth_k (24: the data's width, 0: the fixed bandwidth) from the
+    same key: the width changes the run (which predictions are known, so the actions and the
+    states visited); and an evaluation with bandwidth_k equals one at the resolved fixed
+    width."""
     from envs.mountain_car import MountainCar
 
     env = MountainCar()
@@ -167,14 +173,18 @@ def test_evaluation_and_a_swept_run_use_the_data_width():
     run = RunConfig(n_blocks=1, episodes_per_block=2, eval_episodes=3)
     train = make_train(env, cfg, run)
     params = HedgerParams.create(cfg, bandwidth_k=np.asarray([24, 0]))
-    state, res = jax.jit(jax.vmap(train.train))(jax.random.split(jax.random.PRNGKey(0), 2),
-                                                params)
+    key = jax.random.PRNGKey(0)
+    state, res = jax.jit(jax.vmap(train.train, in_axes=(None, 0)))(key, params)
     assert res.evaluation.mean_steps.shape == (2, 2)
+    size = np.asarray(state.memory.size)
+    assert np.all(size > 0)
+    n = int(size.min())
+    assert not np.array_equal(np.asarray(state.memory.points)[0, :, :n],
+                              np.asarray(state.memory.points)[1, :, :n])
     mem = jax.tree_util.tree_map(lambda x: x[0], state.memory)
     one = jax.tree_util.tree_map(lambda x: x[0], params)
     fixed, h = _resolved(cfg, mem, one)
     assert h != pytest.approx(cfg.bandwidth)
-    key = jax.random.PRNGKey(7)
     ev = jax.jit(lambda p: evaluate(env, env.default_params(), cfg, mem, key, 3, 200,
                                     params=p))
     assert float(ev(one).mean_steps) == float(ev(fixed).mean_steps)

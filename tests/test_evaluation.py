@@ -86,16 +86,26 @@ def test_lanes_must_be_positive():
 from hedger_jax.agent import RunConfig, evaluate, explore_action, make_train  # noqa: E402
 from hedger_jax.config import HedgerConfig  # noqa: E402
 from hedger_jax.greedy import greedy_action  # noqa: E402
+from hedger_jax.memory import add_points, init_memory  # noqa: E402
+
+#: The run of test_determinism.py (same env, config and run config): the compilation cache
+#: serves this file's ``train``, ``init`` and ``run_block`` programs from that file's.
+#: Training episodes (60 steps) are capped below the evaluation's cap (80).
+CFG = HedgerConfig.for_env(ENV, capacity=256, bandwidth=0.05)
+RUN = RunConfig(n_blocks=2, episodes_per_block=2, eval_episodes=6, eval_max_steps=80,
+                train_max_steps=60, reuse_neighbours=False)
 
 
 # Continuous (~11 s) in the full suite: the discrete case checks the same greedy_only switch.
 @pytest.mark.parametrize("continuous, exploration", [
     (False, "random"), pytest.param(True, "gaussian", marks=pytest.mark.full)])
 def test_explore_action_greedy_only_is_the_greedy_action(continuous, exploration):
+    """``explore_action`` with ``greedy_only`` True (a Python bool, a concrete array or a
+    traced value) is ``greedy_action``'s action key by key; traced False is the default
+    (epsilon-greedy) path, which here (epsilon 0.9) explores."""
     env = MountainCar(continuous=continuous)
     cfg = HedgerConfig.for_env(env, capacity=256, bandwidth=0.1)
     run = RunConfig(exploration=exploration, epsilon=0.9)
-    from hedger_jax.memory import add_points, init_memory
     r = np.random.default_rng(0)
     s = r.uniform([-1.2, -0.07], [0.6, 0.07], (200, 2)).astype(np.float32)
     a = (r.uniform(-1, 1, (200, 1)) if continuous else r.integers(-1, 2, (200, 1)))
@@ -103,12 +113,25 @@ def test_explore_action_greedy_only_is_the_greedy_action(continuous, exploration
                      r.uniform(0, 1, 200).astype(np.float32))
     obs = jnp.asarray(s[:40] + 0.01)
     keys = jax.random.split(jax.random.PRNGKey(3), 40)
-    want = jax.vmap(lambda o, k: greedy_action(cfg, mem, o, k)[0])(obs, keys)
+    want = np.asarray(jax.jit(jax.vmap(lambda o, k: greedy_action(cfg, mem, o, k)[0]))(
+        obs, keys))
+    explore = jax.jit(jax.vmap(lambda o, k, flag: explore_action(cfg, run, mem, o, k, flag),
+                               in_axes=(0, 0, None)))
     for flag in (True, jnp.asarray(True)):
-        got = jax.vmap(lambda o, k: explore_action(cfg, run, mem, o, k, flag))(obs, keys)
-        np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
-    explored = jax.vmap(lambda o, k: explore_action(cfg, run, mem, o, k, False))(obs, keys)
-    assert not np.array_equal(np.asarray(explored), np.asarray(want))   # epsilon 0.9
+        np.testing.assert_array_equal(np.asarray(explore(obs, keys, flag)), want,
+                                      err_msg=f"greedy_only={flag!r}")
+    explored = np.asarray(explore(obs, keys, jnp.asarray(False)))
+    default = jax.jit(jax.vmap(lambda o, k: explore_action(cfg, run, mem, o, k)))(obs, keys)
+    np.testing.assert_array_equal(explored, np.asarray(default))
+    assert not np.array_equal(explored, want)                     # epsilon 0.9
+
+
+def _block_case(continuous):
+    """(env, config, run config) of the block-evaluation test."""
+    if not continuous:
+        return ENV, CFG, RUN
+    env = MountainCar(continuous=True)
+    return env, HedgerConfig.for_env(env, capacity=2000, bandwidth=0.05, action_scale=0.5), RUN
 
 
 # Continuous (~40 s) only in the full suite: the discrete case checks the same loop.
@@ -118,25 +141,27 @@ def test_block_evaluations_are_evaluate_episode_for_episode(continuous):
     (greedy): the results are ``evaluate``'s on the same memory and key, bit for bit -- for
     the first evaluation (``init`` calls ``evaluate``) and for a later block. Training
     episodes are capped below the evaluation's cap (the rollout's buffer is shorter)."""
-    env = MountainCar(continuous=continuous)
-    cfg = HedgerConfig.for_env(env, capacity=2000, bandwidth=0.05,
-                               **({"action_scale": 0.5} if continuous else {}))
-    run = RunConfig(n_blocks=2, episodes_per_block=2, eval_episodes=9, eval_max_steps=150,
-                    train_max_steps=120)
+    env, cfg, run = _block_case(continuous)
+    assert run.train_max_steps < run.eval_max_steps
     tr = make_train(env, cfg, run)
-    key = jax.random.PRNGKey(11)
+    key = jax.random.PRNGKey(5)
     state0, r0 = jax.jit(tr.init)(key)
     _, results = jax.jit(tr.train)(key)
     state1, r1 = jax.jit(tr.run_block)(state0)
     k_eval = jax.random.split(state0.key, 3)[2]
-    ref = jax.jit(lambda m, k: evaluate(env, env.default_params(), cfg, m, k, 9, 150,
+    ref = jax.jit(lambda m, k: evaluate(env, env.default_params(), cfg, m, k,
+                                        run.eval_episodes, run.eval_max_steps,
                                         refresh=False))(state1.memory, k_eval)
-    for got, want in ((jax.tree_util.tree_map(lambda x: x[0], results), r0),
-                      (jax.tree_util.tree_map(lambda x: x[1], results), r1)):
-        for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want)):
-            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    for i, want in ((0, r0), (1, r1)):
+        got = jax.tree_util.tree_map(lambda x: x[i], results)
+        for j, (a, b) in enumerate(zip(jax.tree_util.tree_leaves(got),
+                                       jax.tree_util.tree_leaves(want))):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b),
+                                          err_msg=f"block {i}, leaf {j}")
     np.testing.assert_array_equal(np.asarray(r1.evaluation.mean_steps),
                                   np.asarray(ref.mean_steps))
     np.testing.assert_array_equal(np.asarray(r1.evaluation.success_rate),
                                   np.asarray(ref.success_rate))
     assert int(r1.episodes) == 2 and int(state1.memory.size) > 0
+    # Episodes of both outcomes (goal and timeout): the comparison is not of constants.
+    assert 0.0 < float(r1.evaluation.success_rate) < 1.0

@@ -12,10 +12,13 @@ from experiments.stats import mean_ci, welch_p
 from experiments.summary import figure_summary
 from hedger_jax.agent import RunConfig
 
+#: A tiny run: at most 3 blocks x 2 episodes x 40 steps = 240 points per seed. Its memory
+#: (256 slots, below 512) uses the brute-force neighbour search, which compiles about three
+#: times faster than the grid index (the experiments layer, not the index, is tested here).
 TINY = Variant(
     label="tiny",
     env="mountain_car_discrete",
-    hedger=_items(dict(bandwidth=0.05, capacity=2000)),
+    hedger=_items(dict(bandwidth=0.05, capacity=256)),
     run=RunConfig(n_blocks=3, episodes_per_block=2, eval_episodes=4, eval_max_steps=30,
                   train_max_steps=40),
     x_axis="episodes",
@@ -318,23 +321,46 @@ def test_bandwidth_study_methods_and_robustness_plot(tmp_path):
     assert matplotlib.image.imread(str(path)).shape[:2] == (1350, 2100)
 
 
-def test_adaptive_lines_use_the_data_chosen_width_only_with_discrete_actions():
-    import hedger_jax
+def _adaptive_lines():
+    """(figure, variant) of every adaptive line of the quick figures, optional ones included."""
+    for name in ("fig1", "fig2", "fig5"):
+        fig = build_figure(name, "quick")
+        for v in fig.variants + fig.optional:
+            if "adaptive" in v.label:
+                yield name, v
 
-    fig2 = build_figure("fig2", "quick")
-    discrete = dict(fig2.variants[1].params)
-    assert discrete == dict(hedger_jax.ADAPTIVE)
-    continuous = dict(fig2.optional[1].params)
-    assert continuous == dict(hedger_jax.ADAPTIVE_CONTINUOUS, action_scale=0.5)
-    corridor = build_figure("fig5", "quick").variants[1]
-    assert dict(corridor.params) == dict(hedger_jax.ADAPTIVE_CONTINUOUS, bandwidth_k=48,
-                                         guess_unknown=True, alpha=1.0,
-                                         greedy_temperature=0.3, replay_floor=True,
-                                         clip_to_neighbours=True, ivh_tol=0.5)
-    assert corridor.state_scale_factors is None
-    # A whole figure of adaptive lines builds without the continuous-actions warning.
+
+def test_adaptive_lines_use_the_data_chosen_width_with_both_action_kinds():
+    """Every adaptive line -- discrete and continuous actions alike -- uses the kernel width
+    read from the stored data (``bandwidth_k`` > 0); only the continuous-action lines narrow
+    it as the memory fills (``bandwidth_shrink``). Each line's settings are the library's
+    presets (read from ``hedger_jax.presets``, not retyped), and build without a warning."""
     import warnings
 
+    import hedger_jax
+    from hedger_jax import presets
+
+    assert dict(presets.ADAPTIVE_PARAMS) == dict(hedger_jax.ADAPTIVE)
+    assert dict(presets.ADAPTIVE_CONTINUOUS_PARAMS) == dict(
+        hedger_jax.ADAPTIVE_CONTINUOUS, action_scale=presets.ADAPTIVE_CONTINUOUS_PARAMS[
+            "action_scale"])
+    assert dict(hedger_jax.ADAPTIVE_CONTINUOUS) == dict(hedger_jax.ADAPTIVE,
+                                                        bandwidth_shrink=True)
+    want = {"mountain_car_discrete": presets.ADAPTIVE_PARAMS,
+            "mountain_car_continuous": presets.ADAPTIVE_CONTINUOUS_PARAMS,
+            "corridor": presets.CORRIDOR_ADAPTIVE_PARAMS}
+    envs_seen = set()
+    for name, v in _adaptive_lines():
+        params = dict(v.params)
+        assert params == dict(want[v.env]), (name, v.label)
+        assert params["bandwidth_k"] > 0, (name, v.label)
+        continuous = v.env != "mountain_car_discrete"
+        assert params.get("bandwidth_shrink", False) == continuous, (name, v.label)
+        envs_seen.add(v.env)
+    assert envs_seen == set(want)                 # both action kinds (and the corridor) seen
+    corridor = build_figure("fig5", "quick").variants[1]
+    assert "adaptive" in corridor.label and corridor.state_scale_factors is None
+    # Every line of these figures builds its traced settings without a warning.
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         for name in ("fig1", "fig2", "fig5"):

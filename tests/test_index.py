@@ -42,9 +42,33 @@ def _memory(cfg, pts, refresh=True):
     return m
 
 
+#: Queries per search call: a test's queries are padded (repeated) to a multiple of it, so
+#: every test searching one config shares one compiled program whatever its query count.
+_BATCH = 256
+
+
 @functools.lru_cache(maxsize=None)
 def _select_fn(cfg):
     return jax.jit(jax.vmap(lambda m, z: select_neighbours(cfg, m, z), in_axes=(None, 0)))
+
+
+@functools.lru_cache(maxsize=None)
+def _alone_fn(cfg):
+    """Each query searched alone (``lax.map``: no vmap), one after another."""
+    return jax.jit(lambda m, zs: jax.lax.map(lambda z: select_neighbours(cfg, m, z), zs))
+
+
+def _padded(queries):
+    q = np.asarray(queries, np.float32)
+    return jnp.asarray(np.resize(q, (-(-len(q) // _BATCH) * _BATCH, q.shape[1])))
+
+
+def _select(cfg, m, queries, fn=_select_fn):
+    """K of each query (n, d), vmapped (or with ``fn=_alone_fn`` one by one) -> host
+    ``Neighbours`` with leading axis n."""
+    n = len(queries)
+    out = jax.device_get(fn(cfg)(m, _padded(queries)))
+    return jax.tree_util.tree_map(lambda x: x[:n], out)
 
 
 def _assert_canonical(nb):
@@ -58,13 +82,11 @@ def _assert_canonical(nb):
 def _assert_same(cfg_b, m_b, cfg_g, m_g, queries, canonical=False):
     """Brute force and the grid find the same K (sets; ties at the k-th distance aside); with
     ``canonical``, both also in canonical order. Returns brute force's."""
-    q = jnp.asarray(queries, jnp.float32)
-    a = jax.device_get(_select_fn(cfg_b)(m_b, q))
-    b = jax.device_get(_select_fn(cfg_g)(m_g, q))
+    a, b = _select(cfg_b, m_b, queries), _select(cfg_g, m_g, queries)
     if canonical:
         _assert_canonical(a)
         _assert_canonical(b)
-    for i in range(q.shape[0]):
+    for i in range(len(queries)):
         da = np.sort(a.sqdist[i][a.mask[i]])
         db = np.sort(b.sqdist[i][b.mask[i]])
         np.testing.assert_array_equal(da, db, err_msg=f"query {i}: squared distances differ")
@@ -78,10 +100,26 @@ def _assert_same(cfg_b, m_b, cfg_g, m_g, queries, canonical=False):
     return a
 
 
-def _chosen(geo, index, first, last, live, k, k_thresh):
-    """(level, its table segment lengths (R,)) a query searches first (``level_segments``)."""
-    _, lv, _, length = gi.level_segments(geo, index, first, last, live, k, k_thresh)
-    return lv, length[lv]
+@functools.lru_cache(maxsize=None)
+def _probe_fn(cfg, scan=False):
+    """jit(vmap over queries z) of what ``index.select`` decides for a query of a memory m:
+    (the level it searches first, that level's table candidates in the query's rows) and,
+    with ``scan``, whether that level's answer stands (the covering level, or k found
+    within the finer level's radius; else it is searched again at the covering level)."""
+    geo = gi.geometry(cfg)
+
+    def probe(m, z):
+        first, last, live = gi.level_rows(geo, z)
+        cover, lv, start, length = gi.level_segments(geo, m.index, first, last, live,
+                                                     cfg.max_neighbours, cfg.k_thresh)
+        if not scan:
+            return lv, jnp.sum(length[lv])
+        rec = jnp.zeros_like(start[lv])
+        _, d2 = gi._scan(cfg, geo, m.index, m.head, z, lv, start[lv], length[lv], rec, rec)
+        # ``_scan``'s k entries are in no particular order: all finite = k found.
+        return lv, jnp.sum(length[lv]), (lv == cover) | jnp.all(jnp.isfinite(d2))
+
+    return jax.jit(jax.vmap(probe, in_axes=(None, 0)))
 
 
 def _pair(**kw):
@@ -168,9 +206,10 @@ def test_uniform_random_matches_brute():
 
 
 def test_clustered_overflowing_cells_small_chunks():
-    """Thousands of points (with exact duplicates) in a few cells, scanned 8 at a time."""
+    """Thousands of points (with exact duplicates) in a few cells, scanned 8 at a time (the
+    one-level config of the next test)."""
     rng = np.random.default_rng(1)
-    cb, cg = _pair(index_chunk=8, max_neighbours=16)
+    cb, cg = _pair(index_chunk=8, max_neighbours=8, index_levels=1)
     centres = _uniform(rng, 3)
     pts = np.repeat(centres, 600, axis=0) + rng.normal(0, 0.01, (1800, 3)).astype(np.float32)
     pts[:, 2] = np.round(pts[:, 2])
@@ -199,24 +238,14 @@ def test_scan_rest_runs_for_the_queries_with_more_candidates_only(levels):
     pts = np.concatenate([cluster, _uniform(rng, 700)])
     queries = np.concatenate([cluster[::40] + 0.001, _uniform(rng, 40)])   # 20 dense, 40 not
     mb, mg = _memory(cb, pts), _memory(cg, pts)
-    geo = gi.geometry(cg)
-
-    @jax.jit
-    @jax.vmap
-    def candidates(z):
-        first, last, live = gi.level_rows(geo, z)
-        return jnp.sum(_chosen(geo, mg.index, first, last, live, 8, cg.k_thresh)[1])
-
-    n_cand = np.asarray(candidates(jnp.asarray(queries)))
+    n_cand = np.asarray(_probe_fn(cg, scan=True)(mg, jnp.asarray(queries))[1])
     more = n_cand > gi.first_trips(cg) * cg.index_chunk
     assert 16 < more.sum() < len(queries) // 2          # several groups, not every query
     _assert_same(cb, mb, cg, mg, queries)
-    batched = jax.device_get(_select_fn(cg)(mg, jnp.asarray(queries)))
-    one = jax.jit(lambda z: select_neighbours(cg, mg, z))
-    for i, z in enumerate(queries):
-        single = one(jnp.asarray(z))
-        np.testing.assert_array_equal(np.asarray(single.indices), batched.indices[i])
-        np.testing.assert_array_equal(np.asarray(single.sqdist), batched.sqdist[i])
+    batched = _select(cg, mg, queries)
+    alone = _select(cg, mg, queries, fn=_alone_fn)
+    for name, x, y in zip(batched._fields, alone, batched):
+        np.testing.assert_array_equal(x, y, err_msg=f"{name}: one by one != vmapped")
 
 
 def test_wide_user_chunk_one_level_matches_brute():
@@ -358,14 +387,7 @@ def test_chunk_width_fits_a_full_uniform_memory_and_stays_exact_beyond():
         assert len(geo.levels) == 1 and width % 16 == 0 and 16 <= width < 64
         pts = _uniform(rng, cap)
         mg = _memory(cg, pts)
-
-        @jax.jit
-        @jax.vmap
-        def count(z):
-            first, last, live = gi.level_rows(geo, z)
-            return _chosen(geo, mg.index, first, last, live, cg.max_neighbours, cg.k_thresh)[1].sum()
-
-        counts = np.asarray(count(jnp.asarray(_uniform(rng, 4096))))
+        counts = np.asarray(_probe_fn(cg)(mg, jnp.asarray(_uniform(rng, 4096)))[1])
         assert counts.max() <= width < 2 * counts.max()
         clustered = pts.copy()
         clustered[: cap // 4, :2] = 0.5 + 0.01 * clustered[: cap // 4, :2]   # > width per row
@@ -465,7 +487,8 @@ def test_tiny_and_empty_memories():
 
 
 def _run_writes(policy, capacity, n_writes, refresh_every, seed, **kw):
-    """Write points one by one through add_scaled; refresh at chosen steps; compare often."""
+    """Write points one by one through add_scaled; refresh at chosen steps; compare often.
+    -> (the grid memory, the writes pending (``n_new``) after each block of writes)."""
     rng = np.random.default_rng(seed)
     cb, cg = _pair(**{**dict(capacity=capacity, full_policy=policy, max_neighbours=8,
                              bandwidth=0.08), **kw})
@@ -481,9 +504,9 @@ def _run_writes(policy, capacity, n_writes, refresh_every, seed, **kw):
             return (add_scaled(cb, mb, z, v, w), add_scaled(cg, mg, z, v, w)), None
         return jax.lax.scan(body, (mb, mg), (zs, vs, writes))[0]
 
-    refresh = jax.jit(functools.partial(refresh_index, cg, force=True))
+    refresh = functools.partial(refresh_index, cg, force=True)        # jitted inside
     mb, mg = init_memory(cb), init_memory(cg)
-    done = 0
+    done, pending = 0, []
     width = max(refresh_every)          # every block padded with skipped writes: one compile
     for step, block in enumerate(refresh_every):
         writes = np.zeros(width, bool)
@@ -492,6 +515,7 @@ def _run_writes(policy, capacity, n_writes, refresh_every, seed, **kw):
         zs[:block], vs[:block] = pts[done:done + block], vals[done:done + block]
         mb, mg = write_block(mb, mg, jnp.asarray(zs), jnp.asarray(vs), jnp.asarray(writes))
         done += block
+        pending.append(int(mg.index.n_new))
         q = np.concatenate([_uniform(rng, 24), pts[max(0, done - 8):done]])
         _assert_same(cb, mb, cg, mg, q, canonical=True)        # stale index: still exact
         if step % 3 != 2:                                      # sometimes no refresh at all
@@ -499,11 +523,11 @@ def _run_writes(policy, capacity, n_writes, refresh_every, seed, **kw):
             assert int(mg.index.n_new) == 0
             _assert_same(cb, mb, cg, mg, q, canonical=True)
     np.testing.assert_array_equal(np.asarray(mb.points), np.asarray(mg.points))
-    return mg
+    return mg, pending
 
 
 def test_incremental_writes_error_policy():
-    mg = _run_writes("error", 600, 900, [50, 200, 3, 120, 527], seed=3)
+    mg, _ = _run_writes("error", 600, 900, [50, 200, 3, 120, 527], seed=3)
     assert int(mg.size) == 600                                 # filled up, then dropped
 
 
@@ -511,22 +535,59 @@ def test_incremental_writes_ring_buffer_wraps_and_saturates():
     """Ring buffer: overwritten indexed slots must not appear twice; more writes than the
     capacity between refreshes (n_new saturates) and merges bigger than the merge window."""
     blocks = [150, 90, 400, 30, 700, 60, 1500, 5]
-    mg = _run_writes("overwrite_oldest", 300, sum(blocks), blocks, seed=4)
+    mg, pending = _run_writes("overwrite_oldest", 300, sum(blocks), blocks, seed=4)
     assert int(mg.size) == 300
+    window = gi.merge_window(gi.geometry(_cfg("grid", capacity=300)), 300)
+    assert max(pending) == 301 > window, pending     # saturated: more than one window merged
 
 
-def test_predictions_and_training_match_brute():
+@functools.lru_cache(maxsize=None)
+def _value_and_grads_fn(cfg):
+    """jit(vmap over queries z) of a prediction -> ((value, known), (d value / d z,
+    d value / d stored values))."""
+    def value(mem, z, values):
+        p = predict_scaled(cfg, mem._replace(values=values), z)
+        return p.value, p.known
+
+    grad = jax.value_and_grad(value, argnums=(1, 2), has_aux=True)
+    return jax.jit(jax.vmap(lambda m, z: grad(m, z, m.values), in_axes=(None, 0)))
+
+
+@pytest.mark.parametrize("levels", [1, 3])
+def test_predictions_and_gradients_through_the_grid_match_brute(levels):
+    """Predictions (value, known) through the grid index (one level and several) equal brute
+    force's; so does jax.grad of a prediction w.r.t. the query and the stored values (it
+    works through the grid index), which w.r.t. the values is the local fit's equivalent
+    kernel, whose weights sum to 1 (an intercept reproduces constants). Gradients are
+    compared at the first 12 queries (near stored points), values at all."""
+    rng = np.random.default_rng(8)
+    cb, cg = _pair(max_neighbours=16, bandwidth=0.06, index_levels=levels)
+    pts = _uniform(rng, 1500)
+    vals = jnp.asarray(rng.normal(size=cb.capacity).astype(np.float32))
+    mb, mg = (_memory(c, pts)._replace(values=vals) for c in (cb, cg))
+    near = pts[:12] + rng.normal(0, 0.01, (12, 3)).astype(np.float32) * np.float32([1, 1, 0])
+    q = jnp.asarray(np.concatenate([near, _uniform(rng, 64), pts[12:28]]))
+    (vb, kb), (gz_b, gv_b) = _value_and_grads_fn(cb)(mb, q)
+    (vg, kg), (gz_g, gv_g) = _value_and_grads_fn(cg)(mg, q)
+    np.testing.assert_array_equal(np.asarray(kb), np.asarray(kg))
+    np.testing.assert_allclose(np.asarray(vb), np.asarray(vg), rtol=1e-5, atol=1e-6)
+    known = np.asarray(kb)[:12]
+    assert known.sum() >= 8
+    gz_b, gv_b, gz_g, gv_g = (np.asarray(g)[:12] for g in (gz_b, gv_b, gz_g, gv_g))
+    np.testing.assert_allclose(gz_g, gz_b, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(gv_g, gv_b, rtol=1e-4, atol=1e-6)
+    assert np.all(np.abs(gz_g[known, :2]).sum(1) > 0)
+    np.testing.assert_allclose(gv_g[known].sum(1), 1.0, atol=1e-4)
+
+
+def test_training_matches_brute():
+    """An episode's replay (train_episode) over the grid index stores brute force's values,
+    and leaves its writes pending in the recent list."""
     rng = np.random.default_rng(5)
     cb, cg = _pair(max_neighbours=16, bandwidth=0.06)
     pts = _uniform(rng, 1200)
-    mb, mg = _memory(cb, pts), _memory(cg, pts)
     vals = jnp.asarray(rng.normal(size=cb.capacity).astype(np.float32))
-    mb, mg = mb._replace(values=vals), mg._replace(values=vals)
-    q = jnp.asarray(np.concatenate([_uniform(rng, 64), pts[:16]]))
-    pb = jax.jit(jax.vmap(lambda z: predict_scaled(cb, mb, z)))(q)
-    pg = jax.jit(jax.vmap(lambda z: predict_scaled(cg, mg, z)))(q)
-    np.testing.assert_array_equal(np.asarray(pb.known), np.asarray(pg.known))
-    np.testing.assert_allclose(np.asarray(pb.value), np.asarray(pg.value), rtol=1e-5, atol=1e-6)
+    mb, mg = (_memory(c, pts)._replace(values=vals) for c in (cb, cg))
     T = 40
     ep = Transition(obs=jnp.asarray(rng.uniform(0, 1, (T, 2)), jnp.float32),
                     action=jnp.asarray(rng.integers(-1, 2, (T, 1)), jnp.float32),
@@ -537,35 +598,6 @@ def test_predictions_and_training_match_brute():
     tg, _ = jax.jit(lambda m, e: train_episode(cg, m, e))(mg, ep)
     np.testing.assert_allclose(np.asarray(tb.values), np.asarray(tg.values), rtol=1e-4, atol=1e-6)
     assert int(tg.index.n_new) == T
-
-
-@pytest.mark.parametrize("levels", [1, 3])
-def test_gradients_of_predictions_through_the_grid_match_brute(levels):
-    """jax.grad of a prediction w.r.t. the query and the stored values works through the grid
-    index (one level and several) and equals brute force's; w.r.t. the values it is the local
-    fit's equivalent kernel, whose weights sum to 1 (an intercept reproduces constants)."""
-    rng = np.random.default_rng(8)
-    cb, cg = _pair(max_neighbours=16, bandwidth=0.06, index_levels=levels)
-    pts = _uniform(rng, 1500)
-    mb, mg = _memory(cb, pts), _memory(cg, pts)
-    vals = jnp.asarray(rng.normal(size=cb.capacity).astype(np.float32))
-    mb, mg = mb._replace(values=vals), mg._replace(values=vals)
-    q = jnp.asarray(pts[:12] + rng.normal(0, 0.01, (12, 3)).astype(np.float32)
-                    * np.array([1, 1, 0], np.float32))
-
-    def grads(cfg, mem):
-        def value(z, values):
-            return predict_scaled(cfg, mem._replace(values=values), z).value
-        return jax.jit(jax.vmap(jax.grad(value, argnums=(0, 1)), in_axes=(0, None)))(
-            q, mem.values)
-
-    (gz_b, gv_b), (gz_g, gv_g) = grads(cb, mb), grads(cg, mg)
-    known = np.asarray(jax.vmap(lambda z: predict_scaled(cb, mb, z).known)(q))
-    assert known.sum() >= 8
-    np.testing.assert_allclose(np.asarray(gz_g), np.asarray(gz_b), rtol=1e-4, atol=1e-5)
-    np.testing.assert_allclose(np.asarray(gv_g), np.asarray(gv_b), rtol=1e-4, atol=1e-6)
-    assert np.all(np.abs(np.asarray(gz_g)[known, :2]).sum(1) > 0)
-    np.testing.assert_allclose(np.asarray(gv_g)[known].sum(1), 1.0, atol=1e-4)
 
 
 def test_vmap_over_memories():
@@ -583,41 +615,43 @@ def test_vmap_over_memories():
     a, b = f(cb)(stack(mems_b), q), f(cg)(stack(mems_g), q)
     np.testing.assert_array_equal(np.sort(np.where(a.mask, a.sqdist, -1), -1),
                                   np.sort(np.where(b.mask, b.sqdist, -1), -1))
-    refreshed = jax.vmap(functools.partial(refresh_index, cg))(stack(mems_g))
-    assert refreshed.index.starts.shape[0] == 3
+    # refresh_index under vmap: indexing from scratch gives each member's own index; a lazy
+    # refresh with nothing pending leaves it as it is.
+    refresh = jax.vmap(functools.partial(refresh_index, cg))
+    built = refresh(stack(mems_g)._replace(index=None)).index
+    lazy = refresh(stack(mems_g)).index
+    for name, want, x, y in zip(built._fields, stack(mems_g).index, built, lazy):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(want), err_msg=f"built {name}")
+        np.testing.assert_array_equal(np.asarray(y), np.asarray(want), err_msg=f"lazy {name}")
+
+
+def _beyond_the_patch():
+    """32 queries at growing distances (0.005 to 0.08) outside the patch [0.3, 0.38]^2 of
+    the next test, on two sides."""
+    d = np.linspace(0.005, 0.08, 16, dtype=np.float32)
+    mid, zero = np.full_like(d, 0.34), np.zeros_like(d)
+    return np.concatenate([np.stack([mid, 0.38 + d, zero], 1),
+                           np.stack([0.38 + d, mid, zero + 1], 1)])
 
 
 def test_multi_level_dense_and_sparse_queries_match_brute():
     """Finer levels answer dense neighbourhoods; a sparse query or one whose k-th neighbour
-    lies outside the finer level's radius falls back to level 0; all exact."""
+    lies outside the finer level's radius falls back to level 0; all exact. (The
+    three-level config of ``test_scan_rest_runs_for_the_queries_with_more_candidates_only``.)"""
     rng = np.random.default_rng(7)
-    kw = dict(capacity=4000, bandwidth=0.1, max_neighbours=8, index_levels=4)
-    cb, cg = _pair(**kw)
-    dense = _uniform(rng, 3000)
+    cb, cg = _pair(index_chunk=8, max_neighbours=8, index_levels=3)
+    dense = _uniform(rng, 1500)
     dense[:, :2] = 0.3 + 0.08 * dense[:, :2]                  # a dense patch
     sparse = _uniform(rng, 300)
     pts = np.concatenate([dense, sparse])
     queries = np.concatenate([dense[:40] + 0.003, sparse[:40], _uniform(rng, 40),
-                              np.array([[0.3, 0.38, 0.0], [0.385, 0.3, 1.0]], np.float32)])
+                              _beyond_the_patch()])
     mg = _memory(cg, pts)
     _assert_same(cb, _memory(cb, pts), cg, mg, queries)
-    geo = gi.geometry(cg)
-    assert len(geo.levels) == 4
-
-    @jax.jit
-    @jax.vmap
-    def levels(z):      # the level a query is answered at, and whether it is accepted there
-        first, last, live = gi.level_rows(geo, z)
-        _, lv, s0, ln = gi.level_segments(geo, mg.index, first, last, live,
-                                          cg.max_neighbours, cg.k_thresh)
-        s0, ln = s0[lv], ln[lv]
-        rec = jnp.zeros_like(s0)
-        _, d2 = gi._scan(cg, geo, mg.index, mg.head, z, lv, s0, ln, rec, rec)
-        return lv, (lv == 0) | jnp.isfinite(d2[-1])
-
-    chosen, accepted = (np.asarray(a) for a in levels(jnp.asarray(queries)))
+    assert len(gi.geometry(cg).levels) == 3
+    chosen, _, accepted = map(np.asarray, _probe_fn(cg, scan=True)(mg, jnp.asarray(queries)))
     assert chosen[:40].min() >= 2 and (chosen[40:80] == 0).mean() > 0.5
-    assert not accepted.all()                   # some query was rescanned at level 0
+    assert not accepted[-32:].all()             # beyond the patch: rescanned at level 0
 
 
 @pytest.mark.parametrize("bandwidth, paired", [(0.2, True), (0.28, False)])
@@ -632,8 +666,8 @@ def test_off_grid_discrete_actions_are_still_found(bandwidth, paired):
     geo = gi.geometry(cg)
     assert geo.levels[0].bounds[2] == (-0.5, 0.5)
     assert gi.paired_dims(geo) == (False, paired) and gi.n_rows(geo) == (6 if paired else 9)
-    assert gi.level_rows(geo, jnp.zeros(3, jnp.float32))[0].shape == (len(geo.levels),
-                                                                 gi.n_rows(geo))
+    rows = jax.eval_shape(functools.partial(gi.level_rows, geo), jnp.zeros(3, jnp.float32))
+    assert rows[0].shape == (len(geo.levels), gi.n_rows(geo))
     pts = _uniform(rng, 800)
     pts[::4, 2] = rng.choice([-0.55, -0.45, 0.45, 0.52, 0.3], size=len(pts[::4]))
     queries = np.concatenate([pts[:30], _uniform(rng, 30)])
@@ -660,40 +694,48 @@ def _write_all(cfg, pts, vals, width=400):
                           jnp.asarray(np.arange(width) < n))
 
 
+def _short_recent_pair(policy="error"):
+    """A small memory with a recent list of 16 (merged from 12 pending writes)."""
+    return _pair(capacity=120, full_policy=policy, index_recent=16, max_neighbours=8,
+                 bandwidth=0.08)
+
+
 def test_recent_list_overflow_and_saturation_stay_exact():
     """More writes since the last merge than the recent list holds (appended after it), and in
     a ring buffer more than the capacity (saturated: brute force), all without a refresh."""
     rng = np.random.default_rng(9)
     for policy, n_writes in (("error", 150), ("overwrite_oldest", 150), ("overwrite_oldest", 400)):
-        cb, cg = _pair(capacity=120, full_policy=policy, index_recent=16, max_neighbours=8,
-                       bandwidth=0.08)
+        cb, cg = _short_recent_pair(policy)
         pts = _uniform(rng, n_writes)
         vals = rng.normal(size=n_writes).astype(np.float32)
         mb, mg = _write_all(cb, pts, vals), _write_all(cg, pts, vals)
         assert int(mg.index.n_new) == min(n_writes, 120 if policy == "error" else 121)
         q = np.concatenate([_uniform(rng, 30), pts[-10:]])
         _assert_same(cb, mb, cg, mg, q)
-        merged = jax.jit(functools.partial(refresh_index, cg))(mg)   # >= 3R/4 pending: merges
+        merged = refresh_index(cg, mg)                    # >= 3R/4 pending: merges
         assert int(merged.index.n_new) == 0
         _assert_same(cb, mb, cg, merged, q)
 
 
 def test_refresh_merges_lazily_and_force_always():
+    """``refresh_index`` merges from 3/4 of the recent list pending (12 of 16), or always with
+    ``force``; exact either way."""
     rng = np.random.default_rng(10)
-    cb, cg = _pair(capacity=300, index_recent=64)
-    assert gi.merge_threshold(64) == 48
-    pts = _uniform(rng, 48)
-    mg = _write_all(cg, pts[:20], np.zeros(20, np.float32))
-    lazy = refresh_index(cg, mg)                              # 20 < 3/4 of 64: nothing to do
-    assert int(lazy.index.n_new) == 20
+    cb, cg = _short_recent_pair()
+    assert gi.merge_threshold(16) == 12 and gi.merge_threshold(64) == 48
+    pts = _uniform(rng, 12)
+    zero = np.zeros(12, np.float32)
+    mg = _write_all(cg, pts[:10], zero[:10])
+    lazy = refresh_index(cg, mg)                              # 10 < 3/4 of 16: nothing to do
+    assert int(lazy.index.n_new) == 10
     forced = refresh_index(cg, mg, force=True)
     assert int(forced.index.n_new) == 0
-    zero = np.zeros(48, np.float32)
-    assert int(refresh_index(cg, _write_all(cg, pts[:47], zero[:47])).index.n_new) == 47
-    assert int(refresh_index(cg, _write_all(cg, pts, zero)).index.n_new) == 0     # 48: merged
-    mb = _write_all(cb, pts[:20], np.zeros(20, np.float32))
+    assert int(refresh_index(cg, _write_all(cg, pts[:11], zero[:11])).index.n_new) == 11
+    assert int(refresh_index(cg, _write_all(cg, pts, zero)).index.n_new) == 0     # 12: merged
+    mb = _write_all(cb, pts[:10], zero[:10])
+    q = np.concatenate([_uniform(rng, 20), pts[:10] + 0.01])
     for m in (lazy, forced):
-        _assert_same(cb, mb, cg, m, _uniform(rng, 20))
+        assert _assert_same(cb, mb, cg, m, q).mask.sum() >= 10
 
 
 def test_scanned_fraction_bounds_what_a_query_reads():
@@ -706,17 +748,17 @@ def test_scanned_fraction_bounds_what_a_query_reads():
         cfg = HedgerConfig(3, capacity=20_000, bandwidth=bw, neighbour_index="grid")
         b = np.array(gi.default_bounds(cfg))
         pts = rng.uniform(b[:, 0], b[:, 1], (20_000, 4)).astype(np.float32)
-        index = gi.build(cfg, jnp.asarray(pts.T), jnp.int32(20_000))
+        index = jax.jit(functools.partial(gi.build, cfg))(jnp.asarray(pts.T), jnp.int32(20_000))
         geo = gi.geometry(cfg)
         lo, hi = b[:, 0] + 0.3 * (b[:, 1] - b[:, 0]), b[:, 1] - 0.3 * (b[:, 1] - b[:, 0])
         queries = jnp.asarray(rng.uniform(lo, hi, (200, 4)).astype(np.float32))
 
-        def count(z):
+        def count(starts, z):
             first, last, live = gi.level_rows(geo, z)
-            s = index.starts
-            return jnp.sum(jnp.where(live[0], s[last[0] + 1] - s[first[0]], 0))
+            return jnp.sum(jnp.where(live[0], starts[last[0] + 1] - starts[first[0]], 0))
 
-        shares[bw] = float(jnp.mean(jax.jit(jax.vmap(count))(queries))) / 20_000
+        counts = jax.jit(jax.vmap(count, (None, 0)))(index.starts, queries)
+        shares[bw] = float(np.mean(np.asarray(counts))) / 20_000
         assert 0 < shares[bw] <= gi.scanned_fraction(cfg)
     assert shares[0.1] > 10 * shares[0.015]
 
@@ -746,7 +788,7 @@ def test_a_recent_list_longer_than_the_merge_window_merges_in_one_pass_exactly()
         n = gi.merge_threshold(R) + 5
         pts, vals = _uniform(rng, n), rng.normal(size=n).astype(np.float32)
         mb, mg = _write_all(cb, pts, vals, width=n), _write_all(cg, pts, vals, width=n)
-        merged = jax.jit(functools.partial(refresh_index, cg))(mg)
+        merged = refresh_index(cg, mg)
         assert int(mg.index.n_new) == n and int(merged.index.n_new) == 0
         q = np.concatenate([_uniform(rng, 40), pts[-10:], pts[:10]])
         _assert_same(cb, mb, cg, merged, q)
@@ -767,16 +809,25 @@ def test_level_target_grows_with_the_uniform_dimensions():
     assert gi.first_trips(cont) * gi.chunk_width(cont) >= 2 * 4.5 * 16
 
 
+#: Continuous actions, three levels, a narrow chunk and a short recent list: the config of
+#: the tests that query as the greedy search does (one compiled search for all of them).
+_CONTINUOUS = dict(action_low=(-0.2,), action_high=(0.2,), capacity=6000, bandwidth=0.05,
+                   max_neighbours=8, index_levels=3, index_chunk=16, index_recent=16)
+
+
+def _continuous_pair(**kw):
+    kw = {**_CONTINUOUS, **kw}
+    return (HedgerConfig(2, 1, neighbour_index="brute", **kw),
+            HedgerConfig(2, 1, neighbour_index="grid", **kw))
+
+
 def test_continuous_levels_small_batches_of_candidate_actions_match_brute():
     """Three uniform dimensions (continuous actions) with several levels, queried as the
     greedy search does: 11 candidate actions per state, vmapped, on uniform points plus a
     dense cluster. Some queries choose a finer level whose k nearest are not all within its
     radius (searched again at level 0); every set is exactly brute force's."""
     rng = np.random.default_rng(5)
-    kw = dict(action_low=(-0.2,), action_high=(0.2,), capacity=6000, bandwidth=0.05,
-              max_neighbours=8, index_levels=3, index_chunk=16)
-    cb = HedgerConfig(2, 1, neighbour_index="brute", **kw)
-    cg = HedgerConfig(2, 1, neighbour_index="grid", **kw)
+    cb, cg = _continuous_pair()
     pts = np.concatenate([rng.uniform([0, 0, -0.2], [1, 1, 0.2], (5000, 3)),
                           rng.normal([0.5, 0.5, 0.0], 0.01, (800, 3))]).astype(np.float32)
     mb, mg = _memory(cb, pts), _memory(cg, pts)
@@ -785,22 +836,16 @@ def test_continuous_levels_small_batches_of_candidate_actions_match_brute():
     q = np.concatenate([np.repeat(states, 11, 0), np.tile(acts, len(states))[:, None]],
                        1).astype(np.float32)
     geo = gi.geometry(cg)
-
-    @jax.jit
-    @jax.vmap
-    def level(z):
-        first, last, live = gi.level_rows(geo, z)
-        return _chosen(geo, mg.index, first, last, live, 8, cg.k_thresh)[0]
-
-    lv = np.asarray(level(jnp.asarray(q)))
+    lv = np.asarray(_probe_fn(cg)(mg, jnp.asarray(q))[0])
     radius = np.array([x.radius for x in geo.levels])[lv]
     d2 = np.sum((pts[None].astype(np.float64) - q[:, None]) ** 2, -1)
     rescanned = (lv > 0) & (np.sum(d2 <= radius[:, None] ** 2, 1) < 8)
     assert np.all(np.bincount(lv, minlength=3) > 10) and rescanned.sum() > 5
     _assert_same(cb, mb, cg, mg, q)
-    per_state = jax.jit(jax.vmap(jax.vmap(lambda z: select_neighbours(cg, mg, z))))(
-        jnp.asarray(q.reshape(len(states), 11, 3)))
-    flat = jax.device_get(_select_fn(cg)(mg, jnp.asarray(q)))
+    per_state = jax.jit(jax.vmap(jax.vmap(lambda m, z: select_neighbours(cg, m, z),
+                                          (None, 0)), (None, 0)))(
+        mg, jnp.asarray(q.reshape(len(states), 11, 3)))
+    flat = _select(cg, mg, q)
     np.testing.assert_array_equal(np.asarray(per_state.indices).reshape(-1, 8), flat.indices)
     np.testing.assert_array_equal(np.asarray(per_state.mask).reshape(-1, 8), flat.mask)
 
@@ -818,18 +863,20 @@ def test_recent_buckets_spanning_two_rows_give_each_write_once():
     lv = geo.levels[0]
     assert geo.bucket > 1 and geo.bucket * 2 > lv.cells[lv.contig]     # buckets span rows
     rng = np.random.default_rng(9)
-    first = np.asarray(gi.level_rows(geo, jnp.asarray([0.5, 0.5, 0.5, 0.5], jnp.float32))[0])
+    first = np.asarray(jax.jit(functools.partial(gi.level_rows, geo))(
+        jnp.asarray([0.5, 0.5, 0.5, 0.5], jnp.float32))[0])
     assert np.all(np.diff(first[0]) > 0)                    # rows in ascending key order
     s = rng.normal([0.0, 1.0, 50.0], [0.1, 0.2, 10.0], (600, 3)).astype(np.float32)
     a = rng.uniform(-1, 1, (600, 1)).astype(np.float32)
-    mb = add_points(cb, init_memory(cb), s, a, np.zeros(600, np.float32))
-    mg = add_points(cg, init_memory(cg), s, a, np.zeros(600, np.float32))  # all in the recent list
-    assert int(mg.index.n_new) == 600
+    mb, mg = (jax.jit(functools.partial(add_points, c))(init_memory(c), s, a,
+                                                         np.zeros(600, np.float32))
+              for c in (cb, cg))
+    assert int(mg.index.n_new) == 600                       # all in the recent list
     q = np.concatenate([s[:150] + rng.normal(0, 0.02, (150, 3)).astype(np.float32),
                         rng.uniform(-1, 1, (150, 1)).astype(np.float32)], 1)
     z = jnp.asarray((q - np.asarray(cg.input_offset, np.float32))
                     * np.asarray(cg.input_scale, np.float32))
-    got = jax.device_get(_select_fn(cg)(mg, z))
+    got = _select(cg, mg, z)
     for i in range(len(q)):
         real = got.indices[i][got.mask[i]]
         assert len(set(real.tolist())) == len(real), f"query {i}: repeated slot {np.sort(real)}"
@@ -923,20 +970,18 @@ def test_recent_insertion_vmapped_uses_the_shift_form_and_agrees(monkeypatch):
 def test_writes_with_the_loop_kernel_insertion_stay_exact(monkeypatch):
     """With loop kernels on, single writes use ``_insert_by_blocks``: the grid index still
     returns brute force's neighbours through a ring buffer, skipped writes, merges, a
-    recent list that overflows (appends after it) and a saturated index."""
+    recent list that overflows (appends after it) and a saturated index (the config of
+    ``_short_recent_pair``: its searches are compiled once)."""
     calls = []
     blocks = gi._insert_by_blocks
     monkeypatch.setattr(gi, "cpu_kernels", lambda: True)
     monkeypatch.setattr(gi, "_insert_by_blocks", lambda *a: calls.append(1) or blocks(*a))
-    mg = _run_writes("overwrite_oldest", 310, 1200, [150, 90, 400, 30, 500, 30], seed=14)
-    assert calls and int(mg.size) == 310
-    rng = np.random.default_rng(19)
-    cb, cg = _pair(capacity=130, full_policy="overwrite_oldest", index_recent=16,
-                   max_neighbours=8, bandwidth=0.08)
-    pts = _uniform(rng, 300)
-    vals = rng.normal(size=300).astype(np.float32)
-    mb, mg = _write_all(cb, pts, vals), _write_all(cg, pts, vals)
-    _assert_same(cb, mb, cg, mg, np.concatenate([_uniform(rng, 30), pts[-10:]]))
+    sizes = [60, 36, 160, 12, 200, 12]
+    mg, pending = _run_writes("overwrite_oldest", 120, sum(sizes), sizes, seed=14,
+                              index_recent=16)
+    assert calls and int(mg.size) == 120
+    assert any(16 < n <= 120 for n in pending), pending      # beyond the recent list
+    assert max(pending) == 121, pending                       # saturated
 
 
 @pytest.mark.parametrize("policy, full", [("error", False), ("error", True),
@@ -948,38 +993,39 @@ def test_one_query_at_a_time_matches_the_batch_and_brute(policy, full):
     cluster and points in the grid's last cells, queried there and at uniform spots; either
     writes pending beyond the recent list (a recent part and the part after it), or a full,
     merged memory, whose last cells' segments end at the arrays' last column (windows that
-    would run past it start earlier). (With ``overwrite_oldest`` every trip counts columns:
-    the stale-slot test needs each candidate's slot.)"""
+    would run past it start earlier). Both hold the same points (the error-policy cases
+    search with the programs of ``test_continuous_levels_...``). (With ``overwrite_oldest``
+    every trip counts columns: the stale-slot test needs each candidate's slot.)"""
     rng = np.random.default_rng(11)
-    n_late = 0 if full else 40
-    kw = dict(action_low=(-0.2,), action_high=(0.2,), capacity=2400 + n_late, bandwidth=0.05,
-              max_neighbours=8, index_levels=3, index_recent=16, full_policy=policy)
-    cb = HedgerConfig(2, 1, neighbour_index="brute", **kw)
-    cg = HedgerConfig(2, 1, neighbour_index="grid", **kw)
+    cb, cg = _continuous_pair(full_policy=policy)
     assert len(gi.geometry(cg).levels) == 3
+    n_late = 40
     corner = rng.uniform([0.98, 0.98, 0.19], [1.0, 1.0, 0.2], (60, 3))
-    pts = np.concatenate([rng.uniform([0, 0, -0.2], [1, 1, 0.2], (2040, 3)),
+    n_uniform = cg.capacity - n_late - 300 - len(corner)
+    pts = np.concatenate([rng.uniform([0, 0, -0.2], [1, 1, 0.2], (n_uniform, 3)),
                           rng.normal([0.5, 0.5, 0.0], 0.01, (300, 3)), corner]
                          ).astype(np.float32)
-    late = rng.uniform([0, 0, -0.2], [1, 1, 0.2], (40, 3)).astype(np.float32)
-    mb, mg = _memory(cb, pts), _memory(cg, pts)
-    if not full:
-        writes = jnp.ones(n_late, bool)
-        vals = jnp.zeros(n_late, jnp.float32)
-        mb = _write_fn(cb)(mb, jnp.asarray(late), vals, writes)
-        mg = _write_fn(cg)(mg, jnp.asarray(late), vals, writes)
-    assert int(mg.index.n_new) == n_late             # 16 in the recent list, 24 after it
-    q = np.concatenate([corner[:30] + 0.001, pts[2040:2070], late[:20],
+    late = rng.uniform([0, 0, -0.2], [1, 1, 0.2], (n_late, 3)).astype(np.float32)
+    if full:                                         # every point indexed
+        mb, mg = (_memory(c, np.concatenate([pts, late])) for c in (cb, cg))
+    else:                                            # the late writes pending
+        writes, vals = jnp.ones(n_late, bool), jnp.zeros(n_late, jnp.float32)
+        mb, mg = (_write_fn(c)(_memory(c, pts), jnp.asarray(late), vals, writes)
+                  for c in (cb, cg))
+    assert int(mg.size) == cg.capacity
+    assert int(mg.index.n_new) == (0 if full else n_late)   # 16 in the recent list, 24 after
+    q = np.concatenate([corner[:30] + 0.001, pts[n_uniform:n_uniform + 30], late[:20],
                         rng.uniform([0, 0, -0.2], [1, 1, 0.2], (40, 3))]).astype(np.float32)
-    alone = jax.device_get(jax.jit(lambda zs: jax.lax.map(
-        lambda z: select_neighbours(cg, mg, z), zs))(jnp.asarray(q)))
-    batch = jax.device_get(_select_fn(cg)(mg, jnp.asarray(q)))
-    for a, b in zip(alone, batch):
-        np.testing.assert_array_equal(a, b)
+    alone = _select(cg, mg, q, fn=_alone_fn)
+    batch = _select(cg, mg, q)
+    for name, a, b in zip(batch._fields, alone, batch):
+        np.testing.assert_array_equal(a, b, err_msg=f"{name}: alone != batch")
     _assert_same(cb, mb, cg, mg, q)
 
 
-@pytest.mark.parametrize("capacity", [3000, 60_000])
+# 60,000 slots (every level at full resolution) in the full suite: at 3,000 the same seven
+# levels' radii are searched, the finest two with a coarsened contiguous dimension.
+@pytest.mark.parametrize("capacity", [3000, pytest.param(60_000, marks=pytest.mark.full)])
 def test_a_traced_radius_below_the_bound_gives_brute_forces_sets(capacity):
     """With ``max_bandwidth`` above ``bandwidth`` the index keeps a level for every radius
     between them; a query with a traced k_thresh in that range is answered from the finest

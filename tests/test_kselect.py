@@ -13,6 +13,15 @@ import pytest
 from hedger_jax import kselect
 
 
+#: The payload carried along with 96 values (position p carries 7 p + 3): one constant, so
+#: the tests' programs over the same shapes are the same programs (compiled once).
+_PAYLOAD = np.arange(96, dtype=np.int32) * 7 + 3
+
+
+def _positions(payload):
+    return (np.asarray(payload) - 3) // 7
+
+
 def _reference(values: np.ndarray, k: int) -> np.ndarray:
     """Positions of the k smallest (ties: lower position first), as sorted positions."""
     order = np.argsort(values, kind="stable")
@@ -46,15 +55,14 @@ def test_smallest_k_matches_a_stable_sort(shape):
     the payload carried along."""
     rng = np.random.default_rng(0)
     k = 32
+    fn = _vmapped(lambda v: kselect.smallest_k(v, jnp.asarray(_PAYLOAD), k), len(shape) - 1)
     for name, base in _cases(rng, int(np.prod(shape))).items():
         values = base.reshape(shape)
-        payload = (np.arange(shape[-1], dtype=np.int32) * 7 + 3)
-        fn = _vmapped(lambda v: kselect.smallest_k(v, jnp.asarray(payload), k), len(shape) - 1)
         got_v, got_p = (np.asarray(a) for a in fn(jnp.asarray(values)))
         flat_v, flat_got_v, flat_got_p = (a.reshape(-1, a.shape[-1])
                                           for a in (values, got_v, got_p))
         for row, gv, gp in zip(flat_v, flat_got_v, flat_got_p):
-            pos = (gp - 3) // 7
+            pos = _positions(gp)
             np.testing.assert_array_equal(np.sort(pos), _reference(row, k), err_msg=name)
             np.testing.assert_array_equal(gv, row[pos], err_msg=name)
 
@@ -120,7 +128,7 @@ def test_many_members_one_after_another_match_the_batched_search(monkeypatch):
     by a huge ``MAP_MEMBERS``), for a flat and a nested vmap, and equal the stable sort's."""
     monkeypatch.setattr(kselect, "cpu_kernels", lambda: True)
     rng = np.random.default_rng(5)
-    payload = jnp.arange(96, dtype=jnp.int32) * 3 + 1
+    payload = jnp.asarray(_PAYLOAD)
 
     def run(shape, members_limit):
         monkeypatch.setattr(kselect, "MAP_MEMBERS", members_limit)
@@ -138,7 +146,7 @@ def test_many_members_one_after_another_match_the_batched_search(monkeypatch):
                 np.testing.assert_array_equal(a, b, err_msg=f"{shape} {name}")
             flat_v, flat_p = values.reshape(-1, 96), mapped[1].reshape(-1, 32)
             for row, gp in zip(flat_v, flat_p):
-                np.testing.assert_array_equal(np.sort((gp - 1) // 3), _reference(row, 32))
+                np.testing.assert_array_equal(np.sort(_positions(gp)), _reference(row, 32))
     monkeypatch.setattr(kselect, "MAP_MEMBERS", 64)
     kselect._smallest_k_fn.cache_clear()
     jaxpr = str(jax.make_jaxpr(jax.vmap(lambda v: kselect.smallest_k(v, payload, 32)))(
@@ -193,19 +201,17 @@ def test_bad_arguments_are_refused():
 _REPLAY_SCRIPT = """
 import jax, jax.numpy as jnp, numpy as np
 from hedger_jax.config import HedgerConfig
-from hedger_jax.memory import add_points, init_memory, refresh_index
+from hedger_jax.memory import init_memory
 from hedger_jax.train import Transition, train_episode
 cfg = HedgerConfig(state_dim=2, action_dim=1, capacity=3000, bandwidth=0.05,
                    max_neighbours=16, neighbour_index="grid", index_levels=1)
-rng = np.random.default_rng(5)
-pts = rng.random((1500, 3)).astype(np.float32)
-mem = refresh_index(cfg, add_points(cfg, init_memory(cfg), jnp.asarray(pts[:, :2]),
-                                    jnp.asarray(pts[:, 2:]), jnp.asarray(pts[:, 0])), force=True)
+# Compiled for the shapes only: an empty memory and episode have the filled ones' shapes.
+mem = jax.eval_shape(lambda: init_memory(cfg))
 T = 6
-f32 = lambda a: jnp.asarray(a, jnp.float32)
-ep = Transition(obs=f32(rng.random((T, 2))), action=f32(rng.random((T, 1))),
-                reward=jnp.full((T,), -1.0), next_obs=f32(rng.random((T, 2))),
-                terminated=jnp.zeros((T,), bool), valid=jnp.ones((T,), bool))
+f32 = jax.ShapeDtypeStruct
+ep = Transition(obs=f32((T, 2), jnp.float32), action=f32((T, 1), jnp.float32),
+                reward=f32((T,), jnp.float32), next_obs=f32((T, 2), jnp.float32),
+                terminated=f32((T,), jnp.bool_), valid=f32((T,), jnp.bool_))
 fn = jax.jit(lambda m, e: train_episode(cfg, m, e)[0])
 text = fn.lower(mem, ep).compile().as_text()
 calls = [l for l in text.splitlines() if 'xla_cpu_small_call="true"' in l and " call(" in l]

@@ -1,4 +1,9 @@
-"""The SB3-style ``Hedger`` learner, with tiny budgets (capacity ~1000, a few hundred steps)."""
+"""The SB3-style ``Hedger`` learner, with tiny budgets (capacity ~1000, a few hundred steps).
+
+The learners that learn search their memory by brute force (``LEARNER``): it compiles about
+three times faster than the grid index that capacity ~1000 would choose, and ``Hedger`` does
+not depend on the search (the grid index is covered by test_index.py, by make_train in
+test_replay_cache.py and by its rebuild on load in test_checkpoint.py)."""
 import dataclasses
 import gymnasium
 import jax
@@ -19,6 +24,7 @@ from hedger_jax.memory import FLAG_FULL, FLAG_NONFINITE, MemoryFullError, NonFin
 from hedger_jax.validation import InvalidInputError
 
 CAP = 1024
+LEARNER = dict(capacity=CAP, neighbour_index="brute")
 RUN = RunConfig(eval_episodes=8, eval_max_steps=60, train_max_steps=100)
 
 
@@ -60,7 +66,7 @@ def demos():
 
 @pytest.fixture(scope="module")
 def trained(demos):
-    model = Hedger("HedgerMountainCar-v0", run_config=RUN, capacity=CAP, seed=1)
+    model = Hedger("HedgerMountainCar-v0", run_config=RUN, seed=1, **LEARNER)
     model.learn_from_demonstrations(demos)
     model.learn(250)
     return model
@@ -99,15 +105,15 @@ def test_construction_defaults():
 def test_demonstrations_object_file_and_policy(demos, trained, tmp_path):
     n = demos.n_transitions
     assert trained.num_demo_timesteps == n
-    a = Hedger("HedgerMountainCar-v0", run_config=RUN, capacity=CAP, seed=1)
+    a = Hedger("HedgerMountainCar-v0", run_config=RUN, seed=1, **LEARNER)
     a.learn_from_demonstrations(demos)
     assert int(a.memory.size) == n
     path = save_demonstrations(tmp_path / "d.npz", demos)
-    b = Hedger("HedgerMountainCar-v0", run_config=RUN, capacity=CAP, seed=1)
+    b = Hedger("HedgerMountainCar-v0", run_config=RUN, seed=1, **LEARNER)
     b.learn_from_demonstrations(path)
     for x, y in zip(_arrays(a.memory), _arrays(b.memory)):
         assert x.tobytes() == y.tobytes()
-    c = Hedger("HedgerMountainCar-v0", run_config=RUN, capacity=CAP, seed=1)
+    c = Hedger("HedgerMountainCar-v0", run_config=RUN, seed=1, **LEARNER)
     c.learn_from_demonstrations(energy_pumping_policy(), n_episodes=2, start=bottom_start(),
                                 max_steps=150)
     assert 0 < c.num_demo_timesteps == int(c.memory.size) <= 300
@@ -141,7 +147,7 @@ def test_learn_counts_progress_and_callback(trained):
     assert trained.num_timesteps >= 250 and trained.num_episodes >= 1
     assert int(trained.memory.size) == trained.num_demo_timesteps + trained.num_timesteps
     assert all(1 <= e["l"] <= 100 for e in trained.ep_info_buffer)
-    m = Hedger("HedgerMountainCar-v0", run_config=RUN, capacity=CAP, seed=2)
+    m = Hedger("HedgerMountainCar-v0", run_config=RUN, seed=2, **LEARNER)
     seen = []
     m.learn(5000, progress_bar=True, callback=lambda info: seen.append(info) or False)
     # Stopped after the first chunk (<= chunk_episodes episodes of <= 100 steps).
@@ -231,6 +237,8 @@ def test_evaluate_policy_with_gym_env(trained):
 
 
 def test_continuous_predict_with_gym_env():
+    """A continuous learner's prediction is the action vector the Gymnasium env takes; with
+    nothing learned it is random, but deterministic (the fixed key) unless asked otherwise."""
     m = Hedger("HedgerMountainCarContinuous-v0", capacity=256)
     a, _ = m.predict(np.array([-0.5, 0.0], np.float32))
     assert a.shape == (1,) and a.dtype == np.float32 and -1.0 <= a[0] <= 1.0
@@ -238,7 +246,10 @@ def test_continuous_predict_with_gym_env():
     obs, _ = env.reset(seed=0)
     action, _ = m.predict(obs)
     assert env.action_space.contains(action)
-    env.step(action)
+    np.testing.assert_array_equal(m.predict(obs)[0], action)
+    np.testing.assert_array_equal(m.predict_action_value(obs), action)
+    obs2, *_ = env.step(action)
+    assert env.observation_space.contains(obs2) and not np.array_equal(obs2, obs)
     env.close()
 
 

@@ -18,7 +18,9 @@ def _sum_loop(n, c0, scale):
     return masked_fori_loop(n, body, c0)
 
 
+@jax.jit
 def _sum_ref(n, c0, scale):
+    """The plain fori_loop (jitted once: called member by member as the reference)."""
     return jax.lax.fori_loop(0, n, lambda i, c: c + scale * TABLE[i % 7], c0)
 
 
@@ -71,7 +73,9 @@ def _branch(p, x, y):
     return batch_cond(p, lambda v: v * y + TABLE[:3], lambda v: v - y, x)
 
 
+@jax.jit
 def _branch_ref(p, x, y):
+    """The plain lax.cond (jitted once: called member by member as the reference)."""
     return jax.lax.cond(p, lambda v: v * y + TABLE[:3], lambda v: v - y, x)
 
 

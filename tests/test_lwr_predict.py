@@ -13,6 +13,7 @@ from hypothesis import given, settings, strategies as st
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 from hedger_jax import HedgerConfig, add_points, init_memory, predict, predict_detailed  # noqa: E402
+from hedger_jax.memory import add_scaled  # noqa: E402
 from hedger_np_ref import default_k_thresh, f32, ref_predict  # noqa: E402
 
 # ------------------------------------------------------------------ configs and jitted fns
@@ -103,25 +104,29 @@ def test_random_data_matches_float64_reference(random_case):
     assert n_known >= 20 and n_unknown >= 5, (n_known, n_unknown)
 
 
-def test_output_dtypes_and_shapes(random_case):
-    Z, V, Q, mem = random_case
-    v, k, n = predict(CFG_R, mem, jnp.asarray(Q[0, :2]), jnp.asarray(Q[0, 2:]))
-    assert v.shape == () and k.shape == () and n.shape == ()
-    assert v.dtype == jnp.float32 and k.dtype == jnp.bool_ and n.dtype == jnp.int32
-    p = predict_detailed(CFG_R, mem, jnp.asarray(Q[0, :2]), jnp.asarray(Q[0, 2:]))
-    m = CFG_R.max_neighbours
-    assert p.indices.shape == (m,) and p.indices.dtype == jnp.int32
-    assert p.weights.shape == (m,) and p.weights.dtype == jnp.float32
-    assert p.mask.shape == (m,) and p.mask.dtype == jnp.bool_
-
-
 def test_unjitted_predict_equals_jitted(random_case):
+    """predict and predict_detailed called eagerly (op by op) give the jitted batch's
+    answers, as the documented dtypes and shapes (scalars; (max_neighbours,) arrays)."""
     Z, V, Q, mem = random_case
-    out = _batch_predict_R(mem, jnp.asarray(Q[:4, :2]), jnp.asarray(Q[:4, 2:]))
+    out = _batch_predict_R(mem, jnp.asarray(Q[:, :2]), jnp.asarray(Q[:, 2:]))
+    det = _batch_detailed_R(mem, jnp.asarray(Q[:, :2]), jnp.asarray(Q[:, 2:]))
+    m = CFG_R.max_neighbours
     for j in range(4):
         v, k, n = predict(CFG_R, mem, jnp.asarray(Q[j, :2]), jnp.asarray(Q[j, 2:]))
+        assert v.shape == () and k.shape == () and n.shape == ()
+        assert v.dtype == jnp.float32 and k.dtype == jnp.bool_ and n.dtype == jnp.int32
         assert bool(k) == bool(out[1][j]) and int(n) == int(out[2][j])
         assert float(v) == pytest.approx(float(out[0][j]), rel=1e-5, abs=1e-6)
+        p = predict_detailed(CFG_R, mem, jnp.asarray(Q[j, :2]), jnp.asarray(Q[j, 2:]))
+        assert p.indices.shape == (m,) and p.indices.dtype == jnp.int32
+        assert p.weights.shape == (m,) and p.weights.dtype == jnp.float32
+        assert p.mask.shape == (m,) and p.mask.dtype == jnp.bool_
+        np.testing.assert_array_equal(np.asarray(p.mask), np.asarray(det.mask[j]))
+        np.testing.assert_array_equal(np.asarray(p.indices), np.asarray(det.indices[j]))
+        np.testing.assert_allclose(np.asarray(p.weights), np.asarray(det.weights[j]),
+                                   rtol=1e-5, atol=1e-7)
+        assert float(p.value) == pytest.approx(float(v), rel=1e-5, abs=1e-6)
+    assert int(np.asarray(out[2][:4]).max()) > 0      # the queries do have neighbours
 
 
 def test_linear_function_recovered_inside_hull(random_case):
@@ -325,6 +330,18 @@ def test_ivh_tol_widens_the_hull(cloud):
             assert v == cfg.default_value
 
 
+@jax.jit
+def _memory_R(Z, V, n):
+    """CFG_R's memory (identity scaling) holding the first n of the rows Z (capacity, 3),
+    values V, written one by one (``add_scaled``, as ``add_points`` does): one program for
+    every n."""
+    def write(m, x):
+        return add_scaled(CFG_R, m, *x), None
+
+    writes = jnp.arange(Z.shape[0]) < n
+    return jax.lax.scan(write, init_memory(CFG_R), (Z, V, writes))[0]
+
+
 @settings(max_examples=12, deadline=None)
 @given(seed=st.integers(0, 2**31 - 1), n=st.integers(5, 256),
        spread=st.sampled_from([0.05, 0.2, 0.5]))
@@ -333,7 +350,9 @@ def test_random_clouds_match_reference_property(seed, n, spread):
     Z = f32(rng.uniform(0.0, spread, size=(n, 3)))
     V = f32(rng.standard_normal() + Z.astype(np.float64) @ rng.standard_normal(3)
             + 0.1 * rng.standard_normal(n))
-    mem = _memory(CFG_R, Z, V)
+    pad = CFG_R.capacity - n
+    mem = _memory_R(np.pad(Z, ((0, pad), (0, 0))), np.pad(V, (0, pad)), n)
+    assert int(mem.size) == n
     Q = f32(rng.uniform(-0.1 * spread, 1.1 * spread, size=(96, 3)))
     out = _batch_predict_R(mem, jnp.asarray(Q[:, :2]), jnp.asarray(Q[:, 2:]))
     for j, zq in enumerate(Q):

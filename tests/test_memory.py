@@ -36,13 +36,19 @@ def _np(mem):
 
 
 def test_init_memory_shapes_and_dtypes():
+    """An empty memory: zeroed (d, capacity) points and (capacity,) values, size = head =
+    flags = 0, no index with brute force; a pytree whose leaves are exactly those arrays."""
     m = init_memory(CFG)
     assert m.points.shape == (3, 8) and m.points.dtype == jnp.float32
     assert m.values.shape == (8,) and m.values.dtype == jnp.float32
+    assert not np.any(np.asarray(m.points)) and not np.any(np.asarray(m.values))
     for f in ("size", "head", "flags"):
         x = getattr(m, f)
         assert x.shape == () and x.dtype == jnp.int32 and int(x) == 0
-    assert len(jax.tree_util.tree_leaves(m)) >= 5  # a pytree of arrays
+    assert m.index is None and CFG.index_kind == "brute"
+    leaves = jax.tree_util.tree_leaves(m)
+    assert len(leaves) == 5
+    assert all(x is y for x, y in zip(leaves, (m.points, m.values, m.size, m.head, m.flags)))
 
 
 def test_add_points_stores_columns_and_counts():
@@ -116,11 +122,6 @@ def test_nonfinite_value_sets_flag():
     v[1] = np.inf
     m = _add_jit(init_memory(CFG), s, a, v)
     assert int(m.flags) & FLAG_NONFINITE
-
-
-def test_error_classes_are_exceptions():
-    assert issubclass(MemoryFullError, Exception)
-    assert issubclass(NonFiniteValueError, Exception)
 
 
 def test_overwrite_oldest_is_a_ring_buffer():

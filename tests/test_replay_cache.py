@@ -14,14 +14,16 @@ from hedger_jax import HedgerConfig
 from hedger_jax.agent import (RunConfig, explore_action_recorded, rollout, train_prefix,
                               training_act)
 from hedger_jax.memory import add_scaled, init_memory, refresh_index, select_neighbours
-from hedger_jax.replay_cache import APPENDED_WIDTH, cached_neighbours
+from hedger_jax.replay_cache import APPENDED_WIDTH, StepNeighbours, cached_neighbours
 
 K = 8
 
 
 def _cfg(kind, policy="error"):
+    """One grid level (the search's levels are tests/test_index.py's concern; one level
+    compiles faster)."""
     return HedgerConfig(2, 1, capacity=600, bandwidth=0.1, max_neighbours=K,
-                        neighbour_index=kind, full_policy=policy)
+                        neighbour_index=kind, full_policy=policy, index_levels=1)
 
 
 def _with_points(cfg, pts, size=None):
@@ -46,11 +48,23 @@ def _refresh(cfg, mem):
     return _refresher(cfg)(mem)
 
 
+#: Rows every batch of appended points is padded to (skipped writes): one program per config.
+_APPEND_ROWS = 64
+
+
 @functools.lru_cache(maxsize=None)
-def _appender(cfg):
-    """Appends scaled points (n, 3) one write at a time (not merged into the index)."""
-    return jax.jit(lambda m, zs: jax.lax.fori_loop(
-        0, zs.shape[0], lambda i, m: add_scaled(cfg, m, zs[i], jnp.float32(0.25)), m))
+def _append_fn(cfg):
+    return jax.jit(lambda m, zs, write: jax.lax.fori_loop(
+        0, zs.shape[0], lambda i, m: add_scaled(cfg, m, zs[i], jnp.float32(0.25), write[i]), m))
+
+
+def _append(cfg, mem, pts):
+    """Appends the scaled points pts (n, 3) one write at a time (not merged into the index)."""
+    n = len(pts)
+    assert n <= _APPEND_ROWS
+    zs = np.zeros((_APPEND_ROWS, 3), np.float32)
+    zs[:n] = pts
+    return _append_fn(cfg)(mem, jnp.asarray(zs), jnp.asarray(np.arange(_APPEND_ROWS) < n))
 
 
 def _memory(cfg, pts):
@@ -77,7 +91,10 @@ def _merger(cfg, width):
         jax.vmap(lambda z: select_neighbours(cfg, m, z)), cfg.k_thresh))
 
 
-def _merged(cfg, mem, zs, sets, size0, ok, width):
+def _merged(cfg, mem, zs, sets, size0, ok, width=64):
+    """``cached_neighbours`` of the queries zs with the sets over size0 slots; ok: whether
+    each set (bool (q,)), or every one (bool), is usable (passed as (q,): one program)."""
+    ok = np.broadcast_to(np.asarray(ok, bool), (zs.shape[0],))
     return _merger(cfg, width)(mem, zs, jnp.asarray(sets), jnp.int32(size0), jnp.asarray(ok))
 
 
@@ -110,7 +127,7 @@ def test_merged_sets_equal_a_search_of_the_grown_memory(kind, seed):
     old, queries, new = _scenario(seed)
     cfg = _cfg(kind)
     m0 = _memory(cfg, old)
-    m1 = _appender(cfg)(m0, jnp.asarray(new))   # appended, not merged: the recent list too
+    m1 = _append(cfg, m0, new)   # appended, not merged: the recent list too
     zs = jnp.asarray(queries)
     cached = _packed(_search(cfg, m0)(zs))
     want = _search(cfg, m1)(zs)
@@ -128,15 +145,16 @@ def test_crowded_queries_and_windows_too_small_fall_back_to_the_search():
     # More than APPENDED_WIDTH appended points near query 0: the merge cannot take them all.
     near = queries[0] + np.random.default_rng(0).normal(
         0, 0.2 * cfg.k_thresh, (APPENDED_WIDTH + 5, 3)).astype(np.float32)
-    m1 = _appender(cfg)(m0, jnp.asarray(near))
+    m1 = _append(cfg, m0, near)
     zs = jnp.asarray(queries)
     cached = _packed(_search(cfg, m0)(zs))
     want = _search(cfg, m1)(zs)
     _assert_same(_merged(cfg, m1, zs, cached, m0.size, True, 64), want)
-    # A window narrower than the appended count, or garbage sets marked unusable, or a
-    # memory that is not the recorded one grown: the search answers.
+    # More appended points than the window (64) holds (sets recorded 65 points back), or
+    # garbage sets marked unusable, or a memory that is not the recorded one grown: the
+    # search answers.
     garbage = np.zeros_like(cached)
-    _assert_same(_merged(cfg, m1, zs, garbage, m0.size, True, 8), want)
+    _assert_same(_merged(cfg, m1, zs, garbage, m1.size - 65, True, 64), want)
     _assert_same(_merged(cfg, m1, zs, garbage, m0.size, False, 64), want)
     _assert_same(_merged(cfg, m1, zs, garbage, m1.size + 1, True, 64), want)
 
@@ -150,7 +168,7 @@ def test_only_the_first_set_missing_searches_the_first_and_merges_the_rest():
     for kind in ("brute", "grid"):
         cfg = _cfg(kind)
         m0 = _memory(cfg, old)
-        m1 = _appender(cfg)(m0, jnp.asarray(new))
+        m1 = _append(cfg, m0, new)
         zs = jnp.asarray(queries)
         cached = _packed(_search(cfg, m0)(zs))
         want = _search(cfg, m1)(zs)
@@ -183,7 +201,7 @@ def test_vmapped_memories_that_disagree_all_search():
     old, queries, new = _scenario(5)
     cfg = _cfg("brute")
     m0 = _memory(cfg, old)
-    m1 = _appender(cfg)(m0, jnp.asarray(new))
+    m1 = _append(cfg, m0, new)
     zs = jnp.asarray(queries)
     cached = _packed(_search(cfg, m0)(zs))
     want = _search(cfg, m1)(zs)
@@ -203,14 +221,19 @@ def test_vmapped_memories_that_disagree_all_search():
         _assert_same(jax.tree_util.tree_map(lambda x: x[i], got), want)
 
 
-# The continuous case (~11 s) in the full suite: the merge it checks is the same code.
+# Quick: brute force (its programs compile about six times faster than the grid's). The
+# merge is the same code for both; test_merged_sets_equal_a_search_of_the_grown_memory[*-grid]
+# checks it against the grid search, tests/test_index.py the grid against brute force. The
+# grid and the continuous case in the full suite.
 @pytest.mark.parametrize("env_name,kind", [
-    ("mountain_car_discrete", "grid"),
+    ("mountain_car_discrete", "brute"),
+    pytest.param("mountain_car_discrete", "grid", marks=pytest.mark.full),
     pytest.param("mountain_car_continuous", "brute", marks=pytest.mark.full)])
 def test_training_with_the_records_equals_training_without(env_name, kind):
     """Episodes from a seeded memory: the rollout records its sets, the replay merges them.
     Same memory as the replay that searches every query (the same sets; the values to
-    float32 rounding, as XLA compiles the two programs' fits alike or nearly)."""
+    float32 rounding). One program: ``use`` (traced) hands the replay either the records or
+    none (``train_prefix(..., None)``, selected by ``lax.cond``)."""
     env = envs.make(env_name)
     params = env.default_params()
     kw = dict(action_scale=0.1) if "continuous" in env_name else {}
@@ -223,14 +246,15 @@ def test_training_with_the_records_equals_training_without(env_name, kind):
     mem = _with_points(cfg, z)
     run = RunConfig(reuse_neighbours=True)      # on below REUSE_MIN_CAPACITY too
 
-    @functools.partial(jax.jit, static_argnums=2)
+    @jax.jit
     def episodes(memory, key, use):
         def one(m, k):
             k1, k2 = jax.random.split(k)
             obs0, s0 = env.reset(k1, params)
 
             ep, length, rec = rollout(env, params, training_act(cfg, run, m), k2, 100, obs0, s0)
-            m = train_prefix(cfg, m, ep, length, rec if use else None)
+            m = jax.lax.cond(use, lambda m: train_prefix(cfg, m, ep, length, rec),
+                             lambda m: train_prefix(cfg, m, ep, length, None), m)
             return refresh_index(cfg, m), (length, jnp.sum(rec.has_chosen & rec.has_candidates))
         return jax.lax.scan(one, memory, jax.random.split(key, 4))
 
@@ -243,6 +267,9 @@ def test_training_with_the_records_equals_training_without(env_name, kind):
 
 
 def test_the_record_holds_the_sets_of_the_queries_it_names():
+    """A greedy step records K of the action taken and of every greedy candidate (each the
+    search's); a random exploratory step (epsilon 1) records none. One program: the step is
+    made greedy by the traced ``greedy_only``."""
     env = envs.make("mountain_car_continuous")
     cfg = HedgerConfig.for_env(env, capacity=3000, bandwidth=0.015, action_scale=0.1,
                                neighbour_index="brute")
@@ -253,18 +280,19 @@ def test_the_record_holds_the_sets_of_the_queries_it_names():
     a = rng.uniform(-1, 1, (400, 1))
     mem = _with_points(cfg, np.asarray(scale_inputs(cfg, jnp.asarray(s, jnp.float32),
                                                     jnp.asarray(a, jnp.float32))))
-    for eps, key in ((0.0, 3), (1.0, 4)):
-        action, rec = jax.jit(lambda k: explore_action_recorded(
-            cfg, RunConfig(epsilon=eps), mem, obs, k))(jax.random.PRNGKey(key))
-        if eps == 1.0:                        # a random step searched nothing
+    step = jax.jit(lambda k, greedy: explore_action_recorded(
+        cfg, RunConfig(epsilon=1.0), mem, obs, k, greedy_only=greedy))
+    search = jax.jit(jax.vmap(lambda a: select_neighbours(cfg, mem, scale_inputs(cfg, obs, a))))
+    for greedy, key in ((True, 3), (False, 4)):
+        action, rec = step(jax.random.PRNGKey(key), greedy)
+        if not greedy:                        # a random step searched nothing
             assert not bool(rec.has_candidates) and not bool(rec.has_chosen)
             continue
         assert bool(rec.has_candidates) and bool(rec.has_chosen)
-        want = select_neighbours(cfg, mem, scale_inputs(cfg, obs, action))
-        np.testing.assert_array_equal(np.asarray(rec.chosen), _packed(want))
         grid = jnp.linspace(-1.0, 1.0, cfg.greedy_samples, dtype=jnp.float32)[:, None]
-        want = jax.vmap(lambda a: select_neighbours(cfg, mem, scale_inputs(cfg, obs, a)))(grid)
-        np.testing.assert_array_equal(np.asarray(rec.candidates), _packed(want))
+        want = search(jnp.concatenate([action[None], grid]))
+        np.testing.assert_array_equal(np.asarray(rec.chosen), _packed(want)[0])
+        np.testing.assert_array_equal(np.asarray(rec.candidates), _packed(want)[1:])
         assert int(rec.size) == int(mem.size)
 
 
@@ -280,16 +308,35 @@ def test_rollout_refuses_an_act_whose_outputs_do_not_match_its_record_like():
         rollout(env, params, act3, jax.random.PRNGKey(1), 5, obs0, s0)
 
 
+def _rollout_keeps_records(cfg, run):
+    """Whether an episode's rollout with ``training_act`` returns the sets its greedy
+    searches found (for the replay to reuse), read from its outputs (traced, not run)."""
+    env = envs.make("mountain_car_discrete")
+    params = env.default_params()
+
+    def episode(memory, key):
+        obs0, s0 = env.reset(key, params)
+        return rollout(env, params, training_act(cfg, run, memory), key, 3, obs0, s0)
+
+    memory = jax.eval_shape(functools.partial(init_memory, cfg))
+    out = jax.eval_shape(episode, memory, jax.random.PRNGKey(0))
+    if len(out) == 2:
+        return False
+    assert isinstance(out[2], StepNeighbours) and out[2].chosen.shape == (3, cfg.max_neighbours)
+    return True
+
+
 def test_reuse_is_automatic_from_the_minimum_capacity():
+    """The rollout records the greedy searches' sets from ``REUSE_MIN_CAPACITY`` slots on
+    (``reuse_neighbours=None``), or as ``reuse_neighbours`` says; never for a ring buffer."""
     from hedger_jax.replay_cache import REUSE_MIN_CAPACITY
     env = envs.make("mountain_car_discrete")
-    small = HedgerConfig.for_env(env, capacity=1000)
-    big = HedgerConfig.for_env(env, capacity=REUSE_MIN_CAPACITY)
-    mem = init_memory(small)
-    assert not hasattr(training_act(small, RunConfig(), mem), "record_like")
-    assert hasattr(training_act(small, RunConfig(reuse_neighbours=True), mem), "record_like")
-    assert hasattr(training_act(big, RunConfig(), mem), "record_like")
-    assert not hasattr(training_act(big, RunConfig(reuse_neighbours=False), mem),
-                       "record_like")
+    # Brute force (cheaper to trace): the choice depends on the capacity and policy only.
+    small = HedgerConfig.for_env(env, capacity=1000, neighbour_index="brute")
+    big = HedgerConfig.for_env(env, capacity=REUSE_MIN_CAPACITY, neighbour_index="brute")
+    assert not _rollout_keeps_records(small, RunConfig())
+    assert _rollout_keeps_records(small, RunConfig(reuse_neighbours=True))
+    assert _rollout_keeps_records(big, RunConfig())
+    assert not _rollout_keeps_records(big, RunConfig(reuse_neighbours=False))
     ring = big.replace(full_policy="overwrite_oldest")
-    assert not hasattr(training_act(ring, RunConfig(reuse_neighbours=True), mem), "record_like")
+    assert not _rollout_keeps_records(ring, RunConfig(reuse_neighbours=True))

@@ -14,7 +14,11 @@ from hedger_jax.sharding import shard_seeds
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 _SCRIPT = textwrap.dedent("""
+    import os
     import jax, jax.numpy as jnp, numpy as np
+    if os.environ.get("HEDGER_JAX_TEST_XLA_CACHE"):    # the suite's compilation cache
+        jax.config.update("jax_compilation_cache_dir", os.environ["HEDGER_JAX_TEST_XLA_CACHE"])
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     from hedger_jax.config import HedgerConfig
     from hedger_jax.memory import add_points, init_memory, refresh_index
     from hedger_jax.prediction import predict
@@ -63,8 +67,10 @@ _SCRIPT = textwrap.dedent("""
 
 
 def test_shard_seeds_two_forced_cpu_devices():
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2",
-               JAX_PLATFORMS="cpu", PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    # The suite's XLA flags (hedger_jax.cpu.configure, set by conftest) and two host devices.
+    flags = (os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2")
+    env = dict(os.environ, XLA_FLAGS=flags.strip(), JAX_PLATFORMS="cpu",
+               PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
     proc = subprocess.run([sys.executable, "-c", _SCRIPT], env=env, cwd=ROOT,
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stdout + proc.stderr

@@ -114,7 +114,8 @@ def test_short_tabular_run_beats_random(coarse_run):
     c = np.asarray(curve, np.float64)
     assert c[-300:].mean() < c[:300].mean() - 20
     ev = tb.summarise(tb.evaluate_tabular(q, jax.random.PRNGKey(1), 500))
-    rnd = tb.summarise(tb.random_policy_steps(jax.random.PRNGKey(1), 500))
+    # (2500 episodes: the random policy's program of the tests below, compiled once)
+    rnd = tb.summarise(tb.random_policy_steps(jax.random.PRNGKey(1), 2500))
     # Measured ~68 vs ~163 for random (SEs ~2 and ~3): a far larger gap than noise.
     assert ev["mean_steps"] < 110.0
     assert ev["mean_steps"] < rnd["mean_steps"] - 10 * math.hypot(ev["se"], rnd["se"])
@@ -155,18 +156,33 @@ def test_dp_coarse_grid_reaches_goal_from_bottom():
     assert 95 <= t <= 125, t
 
 
-def test_dp_policy_near_fifty_and_better_than_tabular():
-    ev, T = tb.optimal_policy_steps(jax.random.PRNGKey(2), n_episodes=1000, n_grid=101)
+@pytest.fixture(scope="module")
+def committed():
+    """The committed reference lines (JSON)."""
+    assert os.path.exists(tb.REFERENCE_JSON), "run `python -m experiments.tabular`"
+    with open(tb.REFERENCE_JSON) as f:
+        return json.load(f)
+
+
+@pytest.fixture(scope="module")
+def optimal(committed):
+    """``optimal_policy_steps`` with the committed settings (grid, evaluation key and
+    episodes): (PolicyEvaluation, T). One DP solve serves the two tests below."""
+    s = committed["settings"]
+    return tb.optimal_policy_steps(jax.random.PRNGKey(s["eval_seed"]),
+                                   n_episodes=s["n_eval_episodes"], n_grid=s["dp_grid"])
+
+
+def test_dp_policy_near_fifty_and_better_than_tabular(optimal):
+    ev, T = optimal
     s = tb.summarise(ev)
     assert s["success_rate"] == 1.0
     assert 47.0 < s["mean_steps"] < 53.0, s
 
 
 # -- reference lines ----------------------------------------------------------------------------------
-def test_committed_reference_json():
-    assert os.path.exists(tb.REFERENCE_JSON), "run `python -m experiments.tabular`"
-    with open(tb.REFERENCE_JSON) as f:
-        data = json.load(f)
+def test_committed_reference_json(committed, optimal):
+    data = committed
     for k in tb.REFERENCE_KEYS:
         assert isinstance(data[k], dict) and isinstance(data[k]["mean_steps"], float)
         assert data[k]["n_episodes"] == 2500
@@ -183,8 +199,7 @@ def test_committed_reference_json():
     rnd = tb.summarise(tb.random_policy_steps(jax.random.PRNGKey(s["random_seed"]),
                                               s["n_eval_episodes"]))
     assert abs(rnd["mean_steps"] - data["random"]["mean_steps"]) < 0.5
-    T, _ = tb.solve_dp(s["dp_grid"], s["dp_grid"])
-    dp = tb.summarise(tb.evaluate_dp(T, jax.random.PRNGKey(s["eval_seed"]), s["n_eval_episodes"]))
+    dp = tb.summarise(optimal[0])          # solve_dp(dp_grid) evaluated with eval_seed
     assert abs(dp["mean_steps"] - data["optimal_dp"]["mean_steps"]) < 0.5
 
 

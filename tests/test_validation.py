@@ -259,7 +259,9 @@ def test_the_functional_api_checks_shapes_when_traced():
     batch = HedgerParams.create(cfg, alpha=np.asarray([0.5, 0.8]))
     with pytest.raises(InvalidInputError, match=r"params.bandwidth: expected shape \(\)"):
         predict(cfg, mem, s, a, batch)                 # a batch of settings is for vmap
-    jax.vmap(lambda p: predict(cfg, mem, s, a, p))(batch)
+    # ... under which it passes the checks (traced only: the checks run at trace time).
+    out = jax.eval_shape(jax.vmap(lambda p: predict(cfg, mem, s, a, p)), batch)
+    assert out[0].shape == (2,)
 
 
 def test_nan_inputs_inside_jit_are_dont_know_or_refused():

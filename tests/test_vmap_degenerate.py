@@ -13,6 +13,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 from hedger_jax import (HedgerConfig, Transition, add_points, greedy_action,  # noqa: E402
                         init_memory, predict, predict_detailed, train_step)
+from hedger_jax.memory import add_scaled  # noqa: E402
 from hedger_np_ref import f32, ref_predict  # noqa: E402
 
 # ------------------------------------------------------------------ batching
@@ -128,17 +129,29 @@ def test_vmap_over_queries_and_candidate_actions(three_memories):
 # ------------------------------------------------------------------ degenerate memories
 CFG_G = HedgerConfig(1, 1, capacity=16, bandwidth=0.1, k_min=3, max_neighbours=8,
                      default_value=-0.5)
-_add_g = jax.jit(functools.partial(add_points, CFG_G))
 _pred_g = jax.jit(functools.partial(predict_detailed, CFG_G))
 _step_g = jax.jit(functools.partial(train_step, CFG_G))
 _greedy_g = jax.jit(functools.partial(greedy_action, CFG_G))
 
 
+@jax.jit
+def _fill_g(Z, V, n):
+    """CFG_G's memory holding the first n rows of Z (capacity, 2), values V, written one by
+    one (``add_scaled``, as ``add_points`` does with the identity scaling): one program for
+    every n."""
+    def write(m, x):
+        return add_scaled(CFG_G, m, *x), None
+
+    writes = jnp.arange(Z.shape[0]) < n
+    return jax.lax.scan(write, init_memory(CFG_G), (Z, V, writes))[0]
+
+
 def _mem_g(Z, V):
     Z, V = f32(np.reshape(Z, (-1, 2))), f32(V)
-    if len(V) == 0:
-        return init_memory(CFG_G)
-    return _add_g(init_memory(CFG_G), Z[:, :1], Z[:, 1:], V)
+    n, pad = len(V), CFG_G.capacity - len(V)
+    mem = _fill_g(np.pad(Z, ((0, pad), (0, 0))), np.pad(V, (0, pad)), n)
+    assert int(mem.size) == n and int(mem.flags) == 0
+    return mem
 
 
 def _both(mem, zq):
@@ -292,12 +305,17 @@ def test_huge_and_tiny_values(scale):
 
 
 def test_mixed_huge_and_tiny_values_in_one_neighbourhood():
+    """Values 1e20 and 1e-20 side by side: the fit is still the float64 reference's."""
     Z = _cloud(2)
     V = np.where(np.arange(len(Z)) % 2 == 0, 1e20, 1e-20)
     mem = _mem_g(Z, V)
-    p = _both(mem, np.array([0.5, 0.5]))
-    assert np.isfinite(float(p.value))
-    _train_finite(mem, np.array([0.5, 0.5]))
+    zq = np.array([0.5, 0.5])
+    r = _ref_g(Z, V, zq)
+    assert r.known and not r.ambiguous
+    p = _both(mem, zq)
+    assert bool(p.known) and int(p.n_neighbours) == r.n
+    assert float(p.value) == pytest.approx(r.value, rel=1e-3)
+    _train_finite(mem, zq)
 
 
 def test_very_close_points_tiny_spread():
