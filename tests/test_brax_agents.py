@@ -50,9 +50,9 @@ PROBE = {"mountain_car_continuous": np.array([[-0.5, 0.0], [-1.0, 0.05], [0.3, -
 def _check_training_saw_the_env(env_name, params, metrics):
     """What a broken integration would get wrong: brax's observation normaliser counted
     every training step's observation (exactly STEPS) and its statistics are those of the
-    env's observations (inside the observation bounds, each dimension varying); evaluation
-    episodes run to the episode length (the time limit is a truncation, not an early end);
-    the deterministic policy acts in the action range and depends on the observation."""
+    env's observations (inside the observation bounds, each dimension varying); mountain
+    car's evaluation episodes run to the episode length (the time limit is a truncation, not
+    an early end; the corridor's walls may end them earlier)."""
     import envs
 
     env = envs.make(env_name)
@@ -62,7 +62,11 @@ def _check_training_saw_the_env(env_name, params, metrics):
     mean, std = np.asarray(stats.mean), np.asarray(stats.std)
     assert np.all((low <= mean) & (mean <= high)), (mean, low, high)
     assert np.all(std > 0) and np.all(std <= high - low), std
-    assert metrics["eval/avg_episode_length"] == EPISODE_LENGTH
+    length = metrics["eval/avg_episode_length"]
+    if env_name.startswith("mountain_car"):   # no goal within 50 steps: cut by the time limit
+        assert length == EPISODE_LENGTH
+    else:                                      # the corridor's walls end episodes earlier
+        assert 1 <= length <= EPISODE_LENGTH
     assert np.isfinite(metrics["eval/episode_reward"])
 
 
@@ -93,6 +97,10 @@ def test_ppo_trains_end_to_end(env_name):
     assert np.max(np.abs(trained - initial)) > 1e-3
 
 
+# In the full suite (~11 s): PPO above takes the same adapter path (BraxEnv,
+# wrap_for_training, brax_compat, _train) on every run; test_brax_adapter.py checks the
+# dtypes and flags brax's replay buffer stores.
+@pytest.mark.full
 @pytest.mark.parametrize("env_name", ["mountain_car_continuous", CORRIDOR])
 def test_sac_trains_end_to_end(env_name):
     """A few hundred environment steps of brax's SAC (replay buffer prefilled, then one

@@ -103,6 +103,9 @@ def coarse_run():
     return cfg, q, curve
 
 
+# A learning run (2000 episodes) in the full suite; the next test runs the same
+# run_tabular (vmapped, batched = unbatched, both rewards) on every run.
+@pytest.mark.full
 def test_short_tabular_run_beats_random(coarse_run):
     cfg, q, curve = coarse_run
     assert q.shape == (20, 20, 3) and q.dtype == jnp.float32
@@ -121,11 +124,17 @@ def test_short_tabular_run_beats_random(coarse_run):
     assert ev["mean_steps"] < rnd["mean_steps"] - 10 * math.hypot(ev["se"], rnd["se"])
 
 
-def test_tabular_vmaps_over_seeds_and_continues(coarse_run):
+def test_tabular_vmaps_over_seeds_and_continues():
+    """run_tabular vmapped over seeds gives each seed's own episodes; the time reward (-1,
+    gamma 1) keeps every value <= 0 with episodes of 1 to 200 steps, the paper's reward
+    values in [0, 1]."""
     cfg = tb.TabularConfig(n_x=20, n_v=20)
     keys = jax.random.split(jax.random.PRNGKey(5), 2)
     q, curve = jax.jit(jax.vmap(lambda k: tb.run_tabular(k, 50, cfg)))(keys)
     assert q.shape == (2, 20, 20, 3) and curve.shape == (2, 50)
+    assert q.dtype == jnp.float32 and np.all(np.isfinite(np.asarray(q)))
+    assert float(q.max()) <= 0.0 and float(q.min()) < 0.0
+    assert int(curve.max()) <= 200 and int(curve.min()) >= 1
     q0, c0 = tb.run_tabular(keys[0], 50, cfg)
     # Same episodes as the unbatched run (float32 rounding inside vmap may differ by an ulp,
     # which can move one update of the table, so the tables are compared loosely).
