@@ -553,7 +553,10 @@ def _value_and_grads_fn(cfg):
     return jax.jit(jax.vmap(lambda m, z: grad(m, z, m.values), in_axes=(None, 0)))
 
 
-@pytest.mark.parametrize("levels", [1, 3])
+# One level in the full suite: the gradient passes the grid search the same way at any
+# level count (its inputs are stop_gradient), and test_training_matches_brute compares
+# one-level predictions (the replay's) with brute force's.
+@pytest.mark.parametrize("levels", [pytest.param(1, marks=pytest.mark.full), 3])
 def test_predictions_and_gradients_through_the_grid_match_brute(levels):
     """Predictions (value, known) through the grid index (one level and several) equal brute
     force's; so does jax.grad of a prediction w.r.t. the query and the stored values (it
@@ -694,6 +697,19 @@ def _write_all(cfg, pts, vals, width=400):
                           jnp.asarray(np.arange(width) < n))
 
 
+def _written(cfg, pts):
+    """The brute-force memory that writing pts (n, 3) one by one leaves, built by hand: the
+    first ``capacity`` points ("error"), or point i in slot i % capacity, the last write
+    winning (ring buffer)."""
+    cap = cfg.capacity
+    if cfg.full_policy == "error" or len(pts) <= cap:
+        return _memory(cfg, pts[:cap])
+    n = len(pts)
+    kept = np.empty((cap, pts.shape[1]), np.float32)
+    kept[np.arange(n - cap, n) % cap] = pts[n - cap:]     # the last capacity writes
+    return _memory(cfg, kept)
+
+
 def _short_recent_pair(policy="error"):
     """A small memory with a recent list of 16 (merged from 12 pending writes)."""
     return _pair(capacity=120, full_policy=policy, index_recent=16, max_neighbours=8,
@@ -708,7 +724,9 @@ def test_recent_list_overflow_and_saturation_stay_exact():
         cb, cg = _short_recent_pair(policy)
         pts = _uniform(rng, n_writes)
         vals = rng.normal(size=n_writes).astype(np.float32)
-        mb, mg = _write_all(cb, pts, vals), _write_all(cg, pts, vals)
+        mb, mg = _written(cb, pts), _write_all(cg, pts, vals)
+        np.testing.assert_array_equal(np.asarray(mg.points), np.asarray(mb.points))
+        assert int(mg.size) == int(mb.size)
         assert int(mg.index.n_new) == min(n_writes, 120 if policy == "error" else 121)
         q = np.concatenate([_uniform(rng, 30), pts[-10:]])
         _assert_same(cb, mb, cg, mg, q)
@@ -732,7 +750,7 @@ def test_refresh_merges_lazily_and_force_always():
     assert int(forced.index.n_new) == 0
     assert int(refresh_index(cg, _write_all(cg, pts[:11], zero[:11])).index.n_new) == 11
     assert int(refresh_index(cg, _write_all(cg, pts, zero)).index.n_new) == 0     # 12: merged
-    mb = _write_all(cb, pts[:10], zero[:10])
+    mb = _written(cb, pts[:10])
     q = np.concatenate([_uniform(rng, 20), pts[:10] + 0.01])
     for m in (lazy, forced):
         assert _assert_same(cb, mb, cg, m, q).mask.sum() >= 10
@@ -776,22 +794,25 @@ def test_recent_length_grows_with_the_capacity_and_follows_the_config():
             _cfg("grid", index_recent=bad)
 
 
-def test_a_recent_list_longer_than_the_merge_window_merges_in_one_pass_exactly():
+# The ring buffer's one-pass merge in the full suite: its removal of re-merged slots is the
+# merge of the ring-buffer tests above (windows of 300 and 120 writes).
+@pytest.mark.parametrize("policy", ["error",
+                                    pytest.param("overwrite_oldest", marks=pytest.mark.full)])
+def test_a_recent_list_longer_than_the_merge_window_merges_in_one_pass_exactly(policy):
     """R > _MERGE_WINDOW: the window is R (``index.merge_window``), so 3R/4 pending writes are
     merged by one pass; the tables then answer as brute force does."""
     rng = np.random.default_rng(12)
     R = 2 * gi._MERGE_WINDOW
-    for policy in ("error", "overwrite_oldest"):
-        cb, cg = _pair(capacity=4 * gi._MERGE_WINDOW, full_policy=policy, index_recent=R,
-                       max_neighbours=8, bandwidth=0.03)
-        assert gi.merge_window(gi.geometry(cg), cg.capacity) == R
-        n = gi.merge_threshold(R) + 5
-        pts, vals = _uniform(rng, n), rng.normal(size=n).astype(np.float32)
-        mb, mg = _write_all(cb, pts, vals, width=n), _write_all(cg, pts, vals, width=n)
-        merged = refresh_index(cg, mg)
-        assert int(mg.index.n_new) == n and int(merged.index.n_new) == 0
-        q = np.concatenate([_uniform(rng, 40), pts[-10:], pts[:10]])
-        _assert_same(cb, mb, cg, merged, q)
+    cb, cg = _pair(capacity=4 * gi._MERGE_WINDOW, full_policy=policy, index_recent=R,
+                   max_neighbours=8, bandwidth=0.03)
+    assert gi.merge_window(gi.geometry(cg), cg.capacity) == R
+    n = gi.merge_threshold(R) + 5
+    pts, vals = _uniform(rng, n), rng.normal(size=n).astype(np.float32)
+    mg = _write_all(cg, pts, vals, width=n)
+    merged = refresh_index(cg, mg)
+    assert int(mg.index.n_new) == n and int(merged.index.n_new) == 0
+    q = np.concatenate([_uniform(rng, 40), pts[-10:], pts[:10]])
+    _assert_same(cb, _memory(cb, pts), cg, merged, q)     # the n writes filled slots [0, n)
 
 
 def test_level_target_grows_with_the_uniform_dimensions():
@@ -1006,12 +1027,13 @@ def test_one_query_at_a_time_matches_the_batch_and_brute(policy, full):
                           rng.normal([0.5, 0.5, 0.0], 0.01, (300, 3)), corner]
                          ).astype(np.float32)
     late = rng.uniform([0, 0, -0.2], [1, 1, 0.2], (n_late, 3)).astype(np.float32)
+    mb = _memory(cb, np.concatenate([pts, late]))
     if full:                                         # every point indexed
-        mb, mg = (_memory(c, np.concatenate([pts, late])) for c in (cb, cg))
+        mg = _memory(cg, np.concatenate([pts, late]))
     else:                                            # the late writes pending
         writes, vals = jnp.ones(n_late, bool), jnp.zeros(n_late, jnp.float32)
-        mb, mg = (_write_fn(c)(_memory(c, pts), jnp.asarray(late), vals, writes)
-                  for c in (cb, cg))
+        mg = _write_fn(cg)(_memory(cg, pts), jnp.asarray(late), vals, writes)
+    np.testing.assert_array_equal(np.asarray(mg.points), np.asarray(mb.points))
     assert int(mg.size) == cg.capacity
     assert int(mg.index.n_new) == (0 if full else n_late)   # 16 in the recent list, 24 after
     q = np.concatenate([corner[:30] + 0.001, pts[n_uniform:n_uniform + 30], late[:20],
