@@ -1,4 +1,5 @@
-"""Command line: ``python -m experiments <fig1..fig5|all> [--quick|--full] [--seeds N] [--out DIR]``.
+"""Command line: ``python -m experiments <fig1..fig5|all> [--quick|--full] [--seeds N] [--out DIR]``
+(and ``python -m experiments classic-control ...``: ``experiments.classic_control``).
 
 Runs each figure's variants over vmapped seeds with progress bars, writes per figure
 ``DIR/<fig>.json`` (configuration, versions, every seed's curve), ``DIR/<fig>.csv`` and
@@ -107,6 +108,11 @@ def run_figure(name: str, mode: str, seeds: List[int], out: str, seed_batch: int
 
 
 def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["classic-control"]:      # beyond the paper: experiments.classic_control
+        from experiments.classic_control import main as classic_control
+
+        return classic_control(argv[1:])
     parser = argparse.ArgumentParser(prog="python -m experiments", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("figure", choices=list(FIGURES) + ["all"],

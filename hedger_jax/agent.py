@@ -32,6 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from hedger_jax.backup import backup_sweeps
 from hedger_jax.config import HedgerConfig
 from hedger_jax.data_bandwidth import with_data_bandwidth
 from hedger_jax.greedy import (greedy_action, greedy_action_from_uniform, greedy_candidates,
@@ -277,7 +278,7 @@ def _rollout(env: Any, env_params: Any, act, key: jax.Array, max_steps: int,
 
 def train_prefix(config: HedgerConfig, memory: Memory, episode: Transition, length: jax.Array,
                  neighbours: Optional[StepNeighbours] = None,
-                 params: Optional[HedgerParams] = None):
+                 params: Optional[HedgerParams] = None, backup: Any = True):
     """Reverse replay of the first ``length`` steps of an episode (newest first).
 
     Same result as ``train_episode`` on an episode whose steps >= length are padding, but it
@@ -286,8 +287,11 @@ def train_prefix(config: HedgerConfig, memory: Memory, episode: Transition, leng
     searches found (``rollout`` with ``explore_action_recorded``), when ``memory`` is the
     memory it acted with: the replay reuses them instead of searching
     (``hedger_jax.replay_cache``; the same sets). params: ``HedgerParams``, or None for the
-    config's values. Returns the memory.
+    config's values. With ``backup_sweeps`` > 0 the replay is followed by that many
+    memory-wide backups through a plan built now (``hedger_jax.backup``) where ``backup``
+    (a bool, or a traced bool ()) holds. Returns the memory.
     """
+    given = params
     params = with_data_bandwidth(config, memory, params)     # the rollout's width
     width = int(episode.valid.shape[0])
     p = resolve(config, params)
@@ -309,8 +313,15 @@ def train_prefix(config: HedgerConfig, memory: Memory, episode: Transition, leng
     # Without replay_floor the carry is the memory alone: the paper's program.
     floored = replay_floor_on(p)
     if not floored:
-        return masked_fori_loop(length, body, memory)
-    return masked_fori_loop(length, body, (memory, jnp.float32(-jnp.inf)))[0]
+        memory = masked_fori_loop(length, body, memory)
+    else:
+        memory = masked_fori_loop(length, body, (memory, jnp.float32(-jnp.inf)))[0]
+    if backup is False:
+        return memory
+    if config.backup_sweeps == 0 or backup is True:
+        return backup_sweeps(config, memory, given)  # none unless config.backup_sweeps > 0
+    return jax.lax.cond(jnp.asarray(backup, bool), lambda m: backup_sweeps(config, m, given),
+                        lambda m: m, memory)
 
 
 #: Default number of evaluation episodes stepped together (``evaluate_policy``'s ``lanes``):

@@ -14,6 +14,8 @@ File format (format version 1): one uncompressed ``.npz`` (a zip, loaded without
     memory/size       int32 (...)
     memory/head       int32 (...)
     memory/flags      int32 (...)
+    memory/transitions/reward, next_obs, terminated, present
+                      (only where the config keeps transitions, ``backup_sweeps`` > 0)
     extra/<name>      any numeric array passed as ``extra_arrays``
 
     header = {"format": "hedger-jax-checkpoint", "format_version": 1,
@@ -51,7 +53,7 @@ import numpy as np
 from hedger_jax.config import HedgerConfig
 from hedger_jax.errors import CheckpointError  # noqa: F401 (re-exported)
 from hedger_jax.files import atomic_write
-from hedger_jax.memory import Memory, refresh_index
+from hedger_jax.memory import Memory, StoredTransitions, keeps_transitions, refresh_index
 from hedger_jax.run_config import RunConfig
 from hedger_jax.validation import InvalidInputError, check_memory, config_differences
 from hedger_jax.version import __version__ as lib_version
@@ -68,6 +70,9 @@ _MEMORY_FIELDS = ("points", "values", "size", "head", "flags")
 #: Their required dtypes.
 _MEMORY_DTYPES = {"points": np.float32, "values": np.float32, "size": np.int32,
                   "head": np.int32, "flags": np.int32}
+#: The ``StoredTransitions`` arrays saved where the config keeps transitions, and their dtypes.
+_TRANSITION_DTYPES = {"reward": np.float32, "next_obs": np.float32, "terminated": np.bool_,
+                      "present": np.bool_}
 #: Bytes per write call of a save.
 _CHUNK = 1 << 20
 
@@ -163,6 +168,9 @@ def save_checkpoint(path: PathLike, config: HedgerConfig, memory: Memory, run_co
     arrays: Dict[str, np.ndarray] = {}
     for k in _MEMORY_FIELDS:
         arrays[f"memory/{k}"] = np.asarray(getattr(memory, k))
+    if memory.transitions is not None:
+        for k in _TRANSITION_DTYPES:
+            arrays[f"memory/transitions/{k}"] = np.asarray(getattr(memory.transitions, k))
     for k, v in (extra_arrays or {}).items():
         a = np.asarray(v)
         if a.dtype == object or a.dtype.kind not in "biuf":
@@ -266,6 +274,7 @@ def load_checkpoint(path: PathLike, config: Optional[HedgerConfig] = None,
     differs is refused with a :class:`CheckpointError` listing the differing field names.
     Returns :class:`Checkpoint` with a ``Memory`` of jax arrays holding the exact saved bits.
     """
+    import jax
     import jax.numpy as jnp
 
 
@@ -295,18 +304,26 @@ def load_checkpoint(path: PathLike, config: Optional[HedgerConfig] = None,
     missing = [f"memory/{k}" for k in _MEMORY_FIELDS if f"memory/{k}" not in raw]
     if missing:
         fail(f"missing arrays {missing}")
-    np_memory = Memory(**{k: raw[f"memory/{k}"] for k in _MEMORY_FIELDS})
-    for k in _MEMORY_FIELDS:
-        if getattr(np_memory, k).dtype != _MEMORY_DTYPES[k]:
-            fail(f"array 'memory/{k}' has dtype {getattr(np_memory, k).dtype}, expected "
-                 f"{np.dtype(_MEMORY_DTYPES[k])}")
+    for k, dt in {**_MEMORY_DTYPES, **{f"transitions/{t}": d for t, d in
+                                       (_TRANSITION_DTYPES.items()
+                                        if keeps_transitions(stored) else ())}}.items():
+        if f"memory/{k}" not in raw:
+            fail(f"missing array 'memory/{k}'")
+        if raw[f"memory/{k}"].dtype != dt:
+            fail(f"array 'memory/{k}' has dtype {raw[f'memory/{k}'].dtype}, expected "
+                 f"{np.dtype(dt)}")
+    transitions = None
+    if keeps_transitions(stored):
+        transitions = StoredTransitions(**{k: raw[f"memory/transitions/{k}"]
+                                           for k in _TRANSITION_DTYPES})
+    np_memory = Memory(**{k: raw[f"memory/{k}"] for k in _MEMORY_FIELDS},
+                       transitions=transitions)
     try:
         check_memory(stored, np_memory)
     except InvalidInputError as exc:
         fail(f"the stored memory is invalid: {exc}")
 
     # The stored arrays come back bit for bit; the neighbour index is rebuilt from them.
-    memory = refresh_index(stored, Memory(**{k: jnp.asarray(getattr(np_memory, k))
-                                             for k in _MEMORY_FIELDS}))
+    memory = refresh_index(stored, jax.tree_util.tree_map(jnp.asarray, np_memory))
     extra = {k[len("extra/"):]: a for k, a in raw.items() if k.startswith("extra/")}
     return Checkpoint(stored, memory, stored_run, meta, extra)

@@ -133,7 +133,9 @@ class HedgerConfig:
     ``hedger_jax.data_bandwidth``); ``value_eps`` (log-scale values); ``random_ties``,
     ``guess_unknown`` and ``greedy_temperature`` (the greedy choice, ``hedger_jax.greedy``);
     ``clip_to_neighbours`` (``hedger_jax.prediction``); ``replay_floor``
-    (``hedger_jax.train``). ``ridge`` is the fit's relative ridge.
+    (``hedger_jax.train``); ``backup_sweeps`` (memory-wide backups after every episode,
+    ``hedger_jax.backup``; the memory then keeps each point's transition). ``ridge`` is the
+    fit's relative ridge.
     """
 
     state_dim: int = setting(None, "static", convert=integer(1))
@@ -169,6 +171,7 @@ class HedgerConfig:
     greedy_iters: int = setting(8, "static", convert=integer(0))
     greedy_tol: float = setting(1e-3, "static", convert=positive_float)
     full_policy: str = setting("error", "static", convert=choice(FULL_POLICIES))
+    backup_sweeps: int = setting(0, "static", convert=integer(0))
     ridge: float = setting(1e-6, "number", **_between(0, 1, True, True))
     ivh_tol: float = setting(1e-3, "number", **_between(0, 1, hi_open=True))
     input_offset: Optional[Tuple[float, ...]] = setting(

@@ -43,7 +43,7 @@ from hedger_jax.host_loop import (EpisodeBuffer, EpisodeResult,  # noqa: F401 (r
                                   explore_step, greedy_step, refresh, replay_episode,
                                   run_episode, seed_from_key)
 
-__all__ = ["GYM_IDS", "DEFAULT_MAX_STEPS", "ACTION_SPAN", "GymnasiumEnv", "ResolvedEnv",
+__all__ = ["GYM_IDS", "GOAL_TASKS", "DEFAULT_MAX_STEPS", "ACTION_SPAN", "GymnasiumEnv", "ResolvedEnv",
            "resolve_env", "make_env", "is_functional_name", "check_spaces", "EpisodeBuffer",
            "run_episode", "explore_step", "greedy_step", "replay_episode", "refresh",
            "seed_from_key", "sample_observations"]
@@ -54,6 +54,9 @@ GYM_IDS = {
     "HedgerMountainCarContinuous-v0": "mountain_car_continuous",
     "HedgerCorridor-v0": "corridor",
 }
+#: Gymnasium tasks whose termination is reaching the goal (elsewhere, e.g. CartPole's falling
+#: pole, terminating is failing): only there does ``evaluate`` report a ``success_rate``.
+GOAL_TASKS = frozenset({"MountainCar-v0", "MountainCarContinuous-v0", "Acrobot-v1"})
 #: Episode cap of the host loop for a Gymnasium env without a time limit.
 DEFAULT_MAX_STEPS = 1000
 #: Scaled width of a continuous action range (``action_scale = ACTION_SPAN / (high - low)``).
@@ -164,6 +167,7 @@ class GymnasiumEnv:
         range; default ``copy.deepcopy(env)`` (``env`` itself if it cannot be copied).
 
     Attributes: ``gym_env``, ``env_id``, ``name`` (the id, else the class name),
+    ``goal_on_termination`` (the id, or the instance's spec id, is one of ``GOAL_TASKS``),
     ``action_start`` (``Discrete.start``; 0 for a Box), ``default_action_scale``
     (1 for ``Discrete``, ``ACTION_SPAN / (high - low)`` for a Box).
     """
@@ -178,6 +182,8 @@ class GymnasiumEnv:
         self.gym_env = env
         self.env_id = env_id
         self.name = env_id or type(env.unwrapped).__name__
+        spec_id = getattr(getattr(env, "spec", None), "id", None)
+        self.goal_on_termination = (env_id or spec_id) in GOAL_TASKS
         self.obs_dim = int(env.observation_space.shape[0])
         space = env.action_space
         if isinstance(space, spaces.Discrete):
@@ -213,13 +219,14 @@ class GymnasiumEnv:
             low = np.asarray(space.low, np.float64)
             high = np.asarray(space.high, np.float64)
             if np.any(np.asarray(scaling.unbounded(low, high))):
-                samples = sample_observations(self._copy(), scaling.SAMPLE_STEPS,
+                samples = sample_observations(self.fresh_copy(), scaling.SAMPLE_STEPS,
                                               scaling.SAMPLE_SEED)
                 low, high = scaling.scaling_bounds(low, high, samples)
             self._bounds = (np.asarray(low, np.float32), np.asarray(high, np.float32))
         return self._bounds
 
-    def _copy(self) -> Any:
+    def fresh_copy(self) -> Any:
+        """A fresh env like ``gym_env`` (for samples that must not disturb it)."""
         if self._make_copy is not None:
             return self._make_copy()
         try:

@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from hedger_jax.agent import RunConfig, explore_action, train_prefix
+from hedger_jax.backup import BackupPlan, backup_plan, backup_sweeps
 from hedger_jax.config import HedgerConfig
 from hedger_jax.cpu import jit as _jit
 from hedger_jax.greedy import greedy_action
@@ -27,7 +28,7 @@ from hedger_jax.memory import Memory, refresh_index
 from hedger_jax.progress import Chunk
 from hedger_jax.train import Transition
 
-__all__ = ["EpisodeBuffer", "EpisodeResult", "run_episode", "explore_step", "greedy_step",
+__all__ = ["Backups", "EpisodeBuffer", "EpisodeResult", "run_episode", "explore_step", "greedy_step",
            "replay_episode", "refresh", "seed_from_key", "episode_buffer",
            "training_episodes", "evaluate_greedy"]
 
@@ -60,8 +61,38 @@ def greedy_step(memory: Memory, obs: jax.Array, key: jax.Array, t: jax.Array, *,
 def replay_episode(memory: Memory, episode: Transition, length: jax.Array, *,
                    config: HedgerConfig) -> Memory:
     """Reverse replay of an episode's first ``length`` () steps (leading axis T, the padded
-    cap) then the neighbour index's refresh -> memory."""
-    return refresh_index(config, train_prefix(config, memory, episode, length))
+    cap) then the neighbour index's refresh -> memory (the memory-wide backups are
+    ``Backups``')."""
+    return refresh_index(config, train_prefix(config, memory, episode, length, backup=False))
+
+
+@functools.partial(_jit, static_argnames=("config",))
+def _plan(memory: Memory, *, config: HedgerConfig) -> BackupPlan:
+    return backup_plan(config, memory)
+
+
+@functools.partial(_jit, static_argnames=("config",), donate_argnames=("memory",))
+def _sweeps(memory: Memory, plan: BackupPlan, *, config: HedgerConfig) -> Memory:
+    return backup_sweeps(config, memory, plan=plan)
+
+
+class Backups:
+    """The memory-wide backups after each episode (``HedgerConfig.backup_sweeps`` sweeps
+    through a ``backup.BackupPlan``), the plan rebuilt once the env steps since it was built
+    reach ``RunConfig.replan_fraction`` of the stored points (and before the first sweep)."""
+
+    def __init__(self, config: HedgerConfig, run: RunConfig):
+        self.config, self.fraction = config, float(run.replan_fraction)
+        self.plan, self.since = None, 0
+
+    def after_episode(self, memory: Memory, steps: int) -> Memory:
+        """The memory after an episode of ``steps`` env steps, backed up (donated)."""
+        if self.config.backup_sweeps == 0:
+            return memory
+        self.since += steps
+        if self.plan is None or self.since >= self.fraction * int(memory.size):
+            self.plan, self.since = _plan(memory, config=self.config), 0
+        return _sweeps(memory, self.plan, config=self.config)
 
 
 @functools.partial(_jit, static_argnames=("config",))
@@ -147,10 +178,11 @@ def training_episodes(memory: Memory, next_key: Callable[[], jax.Array], env: An
                       buffer: EpisodeBuffer, *, config: HedgerConfig, run: RunConfig,
                       total: int) -> Iterator[Chunk]:
     """Phase two: epsilon-greedy episodes of at most ``buffer.length`` steps, each replayed in
-    reverse, until ``total`` env steps were taken. Each episode's key comes from
+    reverse and then backed up memory-wide (``Backups``), until ``total`` env steps were
+    taken. Each episode's key comes from
     ``next_key()`` (the learner's stream); ``memory`` is donated. Yields one ``Chunk`` per
     episode (``key`` None)."""
-    done = 0
+    done, backups = 0, Backups(config, run)
     while done < total:
         k_env, k_act = jax.random.split(next_key())
         acting = memory
@@ -159,6 +191,7 @@ def training_episodes(memory: Memory, next_key: Callable[[], jax.Array], env: An
                          seed_from_key(k_env), buffer.length, buffer)
         memory = replay_episode(memory, buffer.transition(ep.length), jnp.int32(ep.length),
                                 config=config)
+        memory = backups.after_episode(memory, ep.length)
         # The replay reads the NumPy buffer, which the next episode overwrites.
         memory = jax.block_until_ready(memory)
         done += ep.length
@@ -169,8 +202,9 @@ def training_episodes(memory: Memory, next_key: Callable[[], jax.Array], env: An
 def evaluate_greedy(memory: Memory, key: jax.Array, env: Any, *, config: HedgerConfig,
                     n_episodes: int, max_steps: int) -> Dict[str, float]:
     """``n_episodes`` greedy episodes of at most ``max_steps``, learning off, each reset with a
-    seed drawn from ``key`` -> {"mean_steps", "mean_return", "success_rate" (the fraction
-    that *terminated*)}."""
+    seed drawn from ``key`` -> {"mean_steps", "mean_return", "terminated_rate" (the fraction
+    that *terminated*), and "success_rate" (the same fraction) only where termination is
+    the task's goal (``env.goal_on_termination``)}."""
     memory = refresh(memory, config=config)
     results = []
     for k in np.asarray(jax.random.split(key, n_episodes)):
@@ -178,6 +212,9 @@ def evaluate_greedy(memory: Memory, key: jax.Array, env: Any, *, config: HedgerC
         results.append(run_episode(
             env, lambda obs, t: greedy_step(memory, obs, k_act, t, config=config),
             seed_from_key(k_env), max_steps))
-    return {"mean_steps": float(np.mean([r.length for r in results])),
-            "mean_return": float(np.mean([r.ret for r in results])),
-            "success_rate": float(np.mean([r.terminated for r in results]))}
+    out = {"mean_steps": float(np.mean([r.length for r in results])),
+           "mean_return": float(np.mean([r.ret for r in results])),
+           "terminated_rate": float(np.mean([r.terminated for r in results]))}
+    if getattr(env, "goal_on_termination", False):
+        out["success_rate"] = out["terminated_rate"]
+    return out

@@ -89,6 +89,10 @@ class Hedger:
         ``env_params`` overrides; none for a host-loop env).
       env_kwargs: keyword arguments for ``envs.make`` / ``gymnasium.make`` when ``env`` is an
         id or name.
+      preset: where ``config``'s and ``run_config``'s defaults come from: "auto" (the
+        project's JAX envs: ``ENV_PRESETS``; other Gymnasium envs: "task"), "task" (read
+        from the task, ``hedger_jax.task_settings``) or "paper" (the paper's algorithm:
+        ``HedgerConfig``'s and ``RunConfig``'s own defaults).
       chunk_episodes: phase-two episodes per jitted call of ``learn`` (progress and callback
         granularity; the host loop calls the callback after as many episodes).
       **overrides: ``HedgerConfig`` fields (and ``action_scale`` when ``config`` is None),
@@ -105,11 +109,11 @@ class Hedger:
     def __init__(self, env: Any, config: Optional[HedgerConfig] = None,
                  run_config: Optional[RunConfig] = None, *, seed: int = 0,
                  env_params: Any = None, env_kwargs: Optional[Dict[str, Any]] = None,
-                 chunk_episodes: int = 10, **overrides: Any):
+                 chunk_episodes: int = 10, preset: str = "auto", **overrides: Any):
         self.env_kwargs = dict(env_kwargs or {})
         s = learner_setup.build(env, config, run_config, seed=seed, env_params=env_params,
                                 env_kwargs=self.env_kwargs, chunk_episodes=chunk_episodes,
-                                overrides=overrides)
+                                overrides=overrides, preset_name=preset)
         self.env, self._env_name, self.env_id = s.env, s.name, s.env_id
         self._from_instance, self.host_loop = s.from_instance, s.host_loop
         self.env_params, self.config, self.run_config = s.env_params, s.config, s.run_config
@@ -179,11 +183,21 @@ class Hedger:
           * a policy with pure ``init(key) -> pstate`` and ``act(key, obs, pstate) -> (action
             value (A,), pstate)`` (e.g. ``envs.demonstrators.Policy``): it drives
             ``n_episodes`` episodes (required) of at most ``max_steps`` from ``env.reset`` or
-            ``env.reset_to(start)``, each replayed in reverse after it ends.
-        check_env_id: refuse demonstrations recorded for another env (their ``env_id`` vs the
-          functional env's ``name``).
-        Inputs are validated (shapes, NaN/inf, actions in the set / bounds). Returns ``self``.
+            ``env.reset_to(start)``, each replayed in reverse after it ends;
+          * on a host-loop Gymnasium env, any callable obs -> the env's action (e.g.
+            ``experiments.hand_policies``), for ``n_episodes`` episodes, likewise.
+        check_env_id: refuse demonstrations recorded for another env than this one.
+        Inputs are validated (shapes, NaN/inf, actions in the set / bounds). Returns self.
         """
+        if self.host_loop and phase_one.is_host_policy(source):
+            cap = min(int(max_steps), int(self.run_config.train_max_steps or self.env.max_steps))
+            self._buffer = host_loop.episode_buffer(self._buffer, cap, self.config)
+            steps = phase_one.host_policy_episodes(
+                self.memory, self._next_key, self.env, self._buffer, source, self.action_value,
+                config=self.config, n_episodes=n_episodes)
+            progress.follow_phase_one(self, steps, int(n_episodes), progress_bar,
+                                      "HEDGER demonstrations (episodes)", count_episodes=True)
+            return self
         if phase_one.is_policy(source):
             start, has_start = phase_one.check_policy_run(self.env, self.host_loop, n_episodes,
                                                           max_steps, start)
@@ -256,19 +270,13 @@ class Hedger:
                  key: Any = None) -> Dict[str, float]:
         """The greedy policy, learning off.
 
-        n_episodes / max_steps: default ``run_config.eval_episodes`` / ``eval_max_steps``.
-        key: default ``fold_in(PRNGKey(seed), 1)``: every call without a key uses the same
-        evaluation starts (common random numbers across calls).
+        n_episodes / max_steps: default ``run_config.eval_episodes`` / ``eval_max_steps``;
+        key: default ``fold_in(PRNGKey(seed), 1)`` (the same starts on every call).
 
-        A JAX env (``agent.evaluate``, episodes vmapped): returns ``{"mean_steps": float,
-        "success_rate": float}``, the mean steps to the goal (failures count ``max_steps``).
-
-        A host-loop Gymnasium env: ``n_episodes`` greedy episodes on the host, each reset with
-        a seed drawn from ``key`` and run until Gymnasium's ``terminated`` or ``truncated`` or
-        ``max_steps`` steps. Returns ``{"mean_steps": mean episode length, "mean_return":
-        mean undiscounted return, "success_rate": fraction of episodes that *terminated*
-        (not truncated)}`` -- for an env whose termination is a failure (CartPole's pole
-        falling) that is the failure rate, and for one that never terminates (Pendulum) 0.
+        A JAX env (``agent.evaluate``, episodes vmapped): ``{"mean_steps", "success_rate"}``,
+        the mean steps to the goal (failures count ``max_steps``). A host-loop Gymnasium env
+        (``host_loop.evaluate_greedy``): ``{"mean_steps", "mean_return", "terminated_rate"}``
+        and, where termination is the goal (``environments.GOAL_TASKS``), "success_rate".
         """
         n = int(self.run_config.eval_episodes if n_episodes is None else n_episodes)
         m = int(self.run_config.eval_max_steps if max_steps is None else max_steps)
@@ -284,9 +292,7 @@ class Hedger:
 
     # -------------------------------------------------------------------------- persistence
     def save(self, path: Union[str, os.PathLike]) -> str:
-        """Save config, run config, memory, key, counters and env params to one file
-        (``hedger_jax.checkpoint``: atomic, checksummed), with the env's id (a Gymnasium id
-        for a host-loop env) for ``load``. Returns the path."""
+        """Save everything ``load`` needs to one file (``hedger_jax.persistence``) -> path."""
         return persistence.save(self, path)
 
     @classmethod

@@ -1,5 +1,7 @@
 """What a ``Hedger`` learner runs with: its env, env params, ``HedgerConfig`` and ``RunConfig``
-from what the user passed, the env's preset (``hedger_jax.presets``) filling in the rest.
+from what the user passed, the env's preset (``hedger_jax.presets``) filling in the rest --
+for a Gymnasium env run by the host loop, the settings read from the task
+(``hedger_jax.task_settings``).
 
 ``build`` checks every argument in the order ``Hedger`` documents them and raises
 ``ValueError`` / ``TypeError`` naming the argument.
@@ -14,10 +16,11 @@ import numpy as np
 from hedger_jax import environments
 from hedger_jax.agent import RunConfig
 from hedger_jax.config import HedgerConfig
-from hedger_jax.presets import HOST_EVAL_EPISODES, preset
+from hedger_jax.presets import ENV_PRESETS, HOST_EVAL_EPISODES, preset
+from hedger_jax.task_settings import task_settings
 from hedger_jax.validation import InvalidInputError
 
-__all__ = ["Setup", "build", "preset_config", "preset_run_config", "preset_env_params",
+__all__ = ["PRESETS", "Setup", "build", "preset_config", "preset_run_config", "preset_env_params",
            "scale_states", "ActionMap"]
 
 
@@ -41,14 +44,30 @@ class Setup(NamedTuple):
     actions: "ActionMap"
 
 
+#: ``Hedger``'s ``preset`` choices.
+PRESETS = ("auto", "task", "paper")
+
+
 def build(env: Any, config: Optional[HedgerConfig], run_config: Optional[RunConfig], *,
           seed: Any, env_params: Any, env_kwargs: Dict[str, Any], chunk_episodes: Any,
-          overrides: Dict[str, Any]) -> Setup:
+          overrides: Dict[str, Any], preset_name: str = "auto") -> Setup:
     """Resolve and check ``Hedger``'s arguments (see ``Hedger``) -> ``Setup``."""
+    if preset_name not in PRESETS:
+        raise ValueError(f"preset: must be one of {PRESETS}, got {preset_name!r}")
     resolved = environments.resolve_env(env, env_kwargs)
     env = resolved.env
     host_loop = isinstance(env, environments.GymnasiumEnv)
     settings = preset(resolved.name)
+    if preset_name == "paper":
+        settings = preset(None)
+    task = preset_name == "task" or (preset_name == "auto" and host_loop
+                                     and resolved.name not in ENV_PRESETS)
+    if task and (config is None or run_config is None):
+        if not host_loop:
+            raise ValueError("preset: 'task' reads its settings from a Gymnasium env run by "
+                             "the host loop; the project's JAX envs have their own presets")
+        hedger, run = task_settings(env)                  # any other Gymnasium task
+        settings = {"hedger": hedger, "run": run}
     if host_loop:
         if env_params is not None:
             raise ValueError("env_params: a Gymnasium env run by the host loop has no "

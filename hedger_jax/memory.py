@@ -14,6 +14,10 @@ host by ``memory_check``:
   bit ``FLAG_FULL`` (1)       a point was dropped because the memory was full ("error" policy);
   bit ``FLAG_NONFINITE`` (2)  a NaN/inf value tried to enter the memory (it was not stored).
 The stored data are never corrupted by either event.
+
+With ``backup_sweeps`` > 0 each point also keeps the transition that stored it
+(``StoredTransitions``: reward, next observation, terminated), so that ``hedger_jax.backup``
+can back every point up again.
 """
 from __future__ import annotations
 
@@ -36,6 +40,21 @@ FLAG_FULL = 1
 FLAG_NONFINITE = 2
 
 
+class StoredTransitions(NamedTuple):
+    """The transition beside each stored point, for memory-wide backups (``hedger_jax.backup``).
+
+    reward: float32 (capacity,); next_obs: float32 (S, capacity) raw (unscaled) next
+    observations, feature-major like ``Memory.points``; terminated: bool (capacity,);
+    present: bool (capacity,) whether the slot's point came from a transition (a point stored
+    with ``add_points`` has none and is never backed up).
+    """
+
+    reward: jax.Array
+    next_obs: jax.Array
+    terminated: jax.Array
+    present: jax.Array
+
+
 class Memory(NamedTuple):
     """HEDGER's training points.
 
@@ -48,6 +67,8 @@ class Memory(NamedTuple):
       index:  the neighbour index (``hedger_jax.index.GridIndex``) when the config uses the
               grid search (``HedgerConfig.index_kind``), else ``None`` (no leaves). Kept up
               to date by ``refresh_index``; searches through it are exact even when stale.
+      transitions: ``StoredTransitions`` when the config keeps them (``backup_sweeps`` > 0),
+              else ``None``.
     """
 
     points: jax.Array
@@ -56,6 +77,7 @@ class Memory(NamedTuple):
     head: jax.Array
     flags: jax.Array
     index: Any = None
+    transitions: Any = None
 
 
 class Neighbours(NamedTuple):
@@ -81,7 +103,22 @@ def init_memory(config: HedgerConfig) -> Memory:
         head=jnp.zeros((), jnp.int32),
         flags=jnp.zeros((), jnp.int32),
         index=_grid.empty(config) if uses_index(config) else None,
+        transitions=empty_transitions(config) if keeps_transitions(config) else None,
     )
+
+
+def keeps_transitions(config: HedgerConfig) -> bool:
+    """Whether the memory keeps each point's transition (memory-wide backups are on)."""
+    return config.backup_sweeps > 0
+
+
+def empty_transitions(config: HedgerConfig) -> StoredTransitions:
+    """``StoredTransitions`` of zeros for the config's capacity (no slot present)."""
+    cap = config.capacity
+    return StoredTransitions(reward=jnp.zeros((cap,), jnp.float32),
+                             next_obs=jnp.zeros((config.state_dim, cap), jnp.float32),
+                             terminated=jnp.zeros((cap,), bool),
+                             present=jnp.zeros((cap,), bool))
 
 
 def uses_index(config: HedgerConfig) -> bool:
@@ -171,8 +208,11 @@ def _pad_neighbours(config: HedgerConfig, idx, d2_sel, mask) -> Neighbours:
 
 
 def add_scaled(config: HedgerConfig, memory: Memory, z: jax.Array, value: jax.Array,
-               write: jax.Array = True) -> Memory:
+               write: jax.Array = True, transition: Optional[tuple] = None) -> Memory:
     """Store one scaled point z (d,) with value () if ``write`` (bool ()) -> memory.
+
+    transition: (reward (), next_obs (S,), terminated ()) kept beside the point when the
+    memory keeps transitions; None stores the point without one (never backed up).
 
     Under ``"error"`` a full memory drops the point and sets ``FLAG_FULL``; under
     ``"overwrite_oldest"`` the oldest slot is replaced. A non-finite value or point is
@@ -200,8 +240,26 @@ def add_scaled(config: HedgerConfig, memory: Memory, z: jax.Array, value: jax.Ar
     index = memory.index
     if index is not None:
         index = _grid.note_write(config, index, z, slot, do)
+    stored = memory.transitions
+    if stored is not None:
+        stored = _write_transition(stored, slot, do, transition)
     return Memory(points, values, size.astype(jnp.int32), head.astype(jnp.int32),
-                  flags.astype(jnp.int32), index)
+                  flags.astype(jnp.int32), index, stored)
+
+
+def _write_transition(stored: StoredTransitions, slot: jax.Array, do: jax.Array,
+                      transition: Optional[tuple]) -> StoredTransitions:
+    """``stored`` with slot's entry replaced by ``transition`` (or marked absent) if ``do``."""
+    if transition is None:
+        return stored._replace(present=stored.present.at[slot].set(
+            jnp.where(do, False, stored.present[slot])))
+    reward, next_obs, terminated = transition
+    put = lambda arr, new: arr.at[..., slot].set(jnp.where(do, new, arr[..., slot]))  # noqa
+    return StoredTransitions(
+        reward=put(stored.reward, jnp.asarray(reward, jnp.float32)),
+        next_obs=put(stored.next_obs, jnp.asarray(next_obs, jnp.float32)),
+        terminated=put(stored.terminated, jnp.asarray(terminated, bool)),
+        present=put(stored.present, jnp.ones((), bool)))
 
 
 def add_points(config: HedgerConfig, memory: Memory, states: jax.Array, actions: jax.Array,

@@ -21,13 +21,18 @@ from hedger_jax.memory import Memory
 from hedger_jax.train import Transition
 from hedger_jax.validation import InvalidInputError, check_transitions
 
-__all__ = ["is_policy", "demonstration_episodes", "replay_demonstrations", "check_policy_run",
-           "policy_episodes"]
+__all__ = ["is_policy", "is_host_policy", "demonstration_episodes", "replay_demonstrations",
+           "check_policy_run", "policy_episodes", "host_policy_episodes"]
 
 
 def is_policy(source: Any) -> bool:
     """Whether ``source`` is a policy (pure ``init`` and ``act``), not recorded data."""
     return hasattr(source, "act") and hasattr(source, "init") and not hasattr(source, "obs")
+
+
+def is_host_policy(source: Any) -> bool:
+    """Whether ``source`` is a plain callable obs -> action (run by the host loop)."""
+    return callable(source) and not is_policy(source) and not isinstance(source, type)
 
 
 # ------------------------------------------------------------------------------------------
@@ -139,3 +144,30 @@ def policy_episodes(memory: Memory, next_key: Callable[[], jax.Array], env: Any,
                                          config=config, act=policy.act, init=policy.init,
                                          max_steps=int(max_steps), has_start=has_start)
         yield memory, int(length)
+
+
+def host_policy_episodes(memory: Memory, next_key: Callable[[], jax.Array], env: Any,
+                         buffer: Any, policy: Callable[[np.ndarray], Any],
+                         action_value: Callable[[Any], np.ndarray], *, config: HedgerConfig,
+                         n_episodes: Any) -> Iterator[Tuple[Memory, int]]:
+    """Phase one on a Gymnasium env run by the host loop: ``n_episodes`` episodes of at most
+    ``buffer.length`` steps with ``policy(obs float32 (S,)) -> the env's action`` in control
+    (``action_value`` maps it to HEDGER's action value (A,), checking it), each reset with a
+    seed from ``next_key()`` and replayed in reverse after it ends; ``memory`` is donated.
+    Yields (memory, episode length). Raises ``InvalidInputError`` for a bad ``n_episodes``."""
+    from hedger_jax.host_loop import replay_episode, run_episode, seed_from_key
+
+    if n_episodes is None or isinstance(n_episodes, bool) or int(n_episodes) < 1:
+        raise InvalidInputError(f"n_episodes: a policy needs n_episodes >= 1, got "
+                                f"{n_episodes!r}")
+
+    def episodes(memory):
+        for _ in range(int(n_episodes)):
+            ep = run_episode(env, lambda obs, t: action_value(policy(obs)),
+                             seed_from_key(next_key()), buffer.length, buffer)
+            memory = replay_episode(memory, buffer.transition(ep.length), jnp.int32(ep.length),
+                                    config=config)
+            memory = jax.block_until_ready(memory)      # the buffer is reused next episode
+            yield memory, ep.length
+
+    return episodes(memory)

@@ -50,16 +50,9 @@ def predict_from_neighbours(config: HedgerConfig, memory: Memory, z: jax.Array,
     local fit -> ``Prediction``. Known iff at least ``k_min`` neighbours, a finite fit and
     (with ``use_ivh``) the query inside their hull. params: ``HedgerParams``, or None for
     the config's values."""
-    # Feature-major (d, k), centred on the query: the gathered columns as they come, and the
-    # layout whose sums over K XLA vectorises.
-    zt = memory.points[:, nb.indices] - z[:, None]
-    zt = jnp.where(nb.mask[None, :], zt, 0.0)
-    y = memory.values[nb.indices]
-    # Distances recomputed from the gathered points (one formula whatever the search method
-    # computed), so brute force and the grid index give bit-identical fits.
-    sqdist = squared_distances(zt, jnp.zeros((zt.shape[0],), zt.dtype))
     p = resolve(config, params)
-    w = kernel_weights(sqdist, p.bandwidth, nb.mask)
+    zt, w = neighbour_design(memory, z, nb, p)
+    y = memory.values[nb.indices]
     fit = local_fit_columns(zt, y, w, nb.mask, ridge=p.ridge, ivh_tol=p.ivh_tol)
     fit = fit._replace(value=from_fit_space(p, clip_to_neighbour_values(p, fit.value, y,
                                                                         nb.mask)))
@@ -68,6 +61,19 @@ def predict_from_neighbours(config: HedgerConfig, memory: Memory, z: jax.Array,
     known = flag(p.use_ivh, known & fit.inside, known)
     value = jnp.where(known, fit.value, jnp.float32(p.default_value))
     return Prediction(value, known, count, nb.indices, w, nb.mask)
+
+
+def neighbour_design(memory: Memory, z: jax.Array, nb: Neighbours, p: HedgerParams):
+    """The local fit's inputs for query z (d,) and its set ``nb``: (zt float32 (d, k) the
+    neighbours centred on the query, zero where masked; w float32 (k,) kernel weights)."""
+    # Feature-major (d, k), centred on the query: the gathered columns as they come, and the
+    # layout whose sums over K XLA vectorises.
+    zt = memory.points[:, nb.indices] - z[:, None]
+    zt = jnp.where(nb.mask[None, :], zt, 0.0)
+    # Distances recomputed from the gathered points (one formula whatever the search method
+    # computed), so brute force and the grid index give bit-identical fits.
+    sqdist = squared_distances(zt, jnp.zeros((zt.shape[0],), zt.dtype))
+    return zt, kernel_weights(sqdist, p.bandwidth, nb.mask)
 
 
 def clip_to_neighbour_values(p: HedgerParams, value: jax.Array, y: jax.Array,

@@ -24,7 +24,7 @@ from typing import Any, Dict, Mapping
 __all__ = ["ADAPTIVE", "ADAPTIVE_CONTINUOUS", "MOUNTAIN_CAR", "MOUNTAIN_CAR_CONTINUOUS",
            "CORRIDOR", "CORRIDOR_RUN", "CORRIDOR_SCALE_FACTORS", "CORRIDOR_ENV_PARAMS", "ADAPTIVE_PARAMS",
            "ADAPTIVE_CONTINUOUS_PARAMS", "CORRIDOR_ADAPTIVE_PARAMS", "ENV_PRESETS",
-           "HOST_EVAL_EPISODES", "preset"]
+           "HOST_EVAL_EPISODES", "TASK", "preset"]
 
 _frozen = types.MappingProxyType
 
@@ -70,6 +70,16 @@ ADAPTIVE_CONTINUOUS_PARAMS = _frozen(dict(ADAPTIVE_CONTINUOUS, action_scale=0.5)
 #: from its bounds.
 CORRIDOR_ADAPTIVE_PARAMS = _frozen(dict(ADAPTIVE_CONTINUOUS, bandwidth_k=48,
                                         greedy_temperature=0.3))
+
+#: Any other Gymnasium task (beyond the paper; docs/classic-control.md): the adaptive preset
+#: with room for its data-chosen width (at most 2 x 0.1 of the [0, 1] scaled ranges: the
+#: states of 4-D tasks are sparse), plain values (the task's own reward keeps them of order 1 / (1 - gamma)), five
+#: memory-wide sweeps after every episode through a plan (``hedger_jax.backup``) rebuilt
+#: as the memory grows (``RunConfig.replan_fraction``), and a ring
+#: buffer that keeps the newest ``capacity`` points. ``hedger_jax.task_settings`` adds what it
+#: reads from the task (discount, action scale, the value of "don't know").
+TASK = _frozen(dict(ADAPTIVE, bandwidth=0.1, value_eps=0.0, default_value=0.0,
+                    backup_sweeps=5, capacity=20_000, full_policy="overwrite_oldest"))
 
 #: ``Hedger``'s defaults per ``envs.make`` name: ``hedger`` (``HedgerConfig.for_env``
 #: overrides), ``run`` (``RunConfig`` overrides), and optionally ``state_scale_factors`` (S,)

@@ -11,6 +11,7 @@ from typing import Optional
 import numpy as np
 
 from hedger_jax.settings import (TRACED_KINDS, choice, fields_of, first_failure, integer,
+                                 positive_float,
                                  python_value, reject_traced, setting, spec)
 
 #: ``RunConfig.exploration`` choices.
@@ -30,6 +31,10 @@ class RunConfig:
     eval_episodes: greedy evaluation episodes per evaluation (learning off).
     eval_max_steps: cap of an evaluation episode (a failure counts as this many steps).
     train_max_steps: cap of a phase-two training episode (None: the env's ``max_steps``).
+    replan_fraction: on a Gymnasium env run by the host loop, the memory-wide backups'
+      plan (``hedger_jax.backup``) is rebuilt after an episode once the env steps since it
+      was built reach this fraction of the stored points (so its cost per step stays
+      constant as the memory grows); the JAX envs' loops build one every episode.
     reuse_neighbours: the replay reuses the neighbour sets the rollout's greedy searches
       found (``hedger_jax.replay_cache``): the same sets, so the same run up to float32
       rounding. None (default): for memories of at least
@@ -48,6 +53,7 @@ class RunConfig:
     eval_episodes: int = setting(2500, "static", convert=integer(1))
     eval_max_steps: int = setting(200, "static", convert=integer(1))
     train_max_steps: Optional[int] = setting(None, "static", convert=integer(1, optional=True))
+    replan_fraction: float = setting(0.1, "static", convert=positive_float)
     reuse_neighbours: Optional[bool] = setting(None, "static",
                                                convert=lambda n, v, o: None if v is None
                                                else bool(v))

@@ -109,7 +109,8 @@ def train_step(config: HedgerConfig, memory: Memory, transition: Transition, cac
     if constant(p.region_update) is not False:   # a constant False: not in the program
         memory = region_update(memory, pred.indices, pred.weights, pred.mask,
                                to_fit_space(p, q_new), flag(p.region_update, valid, False))
-    memory = add_scaled(config, memory, z, to_fit_space(p, q_new), valid)
+    memory = add_scaled(config, memory, z, to_fit_space(p, q_new), valid,
+                        (reward, t.next_obs, t.terminated))
     return memory, TrainInfo(pred.value, q_next, q_new, pred.known)
 
 

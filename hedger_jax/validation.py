@@ -236,6 +236,29 @@ def check_memory(config: HedgerConfig, memory: Any, name: str = "memory") -> Non
         raise InvalidInputError(f"{name}.values: NaN/inf among the stored values")
     if np.any(used[..., None, :] & ~np.isfinite(points)):
         raise InvalidInputError(f"{name}.points: NaN/inf among the stored points")
+    _check_transitions_kept(config, getattr(memory, "transitions", None), batch, name)
+
+
+def _check_transitions_kept(config: HedgerConfig, stored: Any, batch: Tuple[int, ...],
+                            name: str) -> None:
+    """The memory keeps transitions exactly when the config asks (``backup_sweeps`` > 0),
+    with the shapes of ``memory.StoredTransitions``."""
+    if config.backup_sweeps == 0:
+        if stored is not None:
+            raise InvalidInputError(f"{name}.transitions: the config keeps none "
+                                    "(backup_sweeps=0) but the memory has them")
+        return
+    if stored is None:
+        raise InvalidInputError(f"{name}.transitions: the config keeps transitions "
+                                f"(backup_sweeps={config.backup_sweeps}) but the memory has none")
+    cap, S = config.capacity, config.state_dim
+    shapes = {"reward": batch + (cap,), "next_obs": batch + (S, cap),
+              "terminated": batch + (cap,), "present": batch + (cap,)}
+    for k, shape in shapes.items():
+        arr = np.asarray(getattr(stored, k))
+        if arr.shape != shape:
+            raise InvalidInputError(f"{name}.transitions.{k}: expected shape {shape}, "
+                                    f"got {arr.shape}")
 
 
 def config_differences(a: Any, b: Any) -> list:

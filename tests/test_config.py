@@ -203,6 +203,7 @@ _VALUES = {
     "replay_floor": [True], "discrete_actions": [((-1.0,), (1.0,))],
     "action_low": [-2.0, (-0.5,)], "action_high": [3.0], "greedy_samples": [3, 21],
     "greedy_iters": [0, 4], "greedy_tol": [1e-5], "full_policy": ["overwrite_oldest"],
+    "backup_sweeps": [0, 2],
     "ridge": [1e-4], "ivh_tol": [0.0, 0.5], "neighbour_index": ["brute", "grid"],
     "index_chunk": [8], "index_bounds": [((0, 1), (0, 2), (-1, 1))], "index_levels": [1, 3],
     "index_recent": [0, 64], "max_bandwidth": [0.4, 1.0],

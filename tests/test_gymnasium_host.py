@@ -58,8 +58,8 @@ class Spaces(gymnasium.Env):
         self.observation_space, self.action_space = observation_space, action_space
 
 
-CAR = dict(capacity=CAP, bandwidth=0.05, gamma=0.99)
-PENDULUM = dict(capacity=CAP, bandwidth=0.1, gamma=0.9)
+CAR = dict(capacity=CAP, bandwidth=0.05, gamma=0.99, preset="paper")
+PENDULUM = dict(capacity=CAP, bandwidth=0.1, gamma=0.9, preset="paper")
 
 
 @pytest.fixture(scope="module")
@@ -151,7 +151,7 @@ def test_scaling_rules(car, pendulum):
     assert car.config.discrete_actions == ((0.0,), (1.0,), (2.0,))
     np.testing.assert_allclose(pendulum.config.input_scale, [0.5, 0.5, 1 / 16, 0.05], rtol=1e-6)
     assert (pendulum.config.action_low, pendulum.config.action_high) == ((-2.0,), (2.0,))
-    assert Hedger("Pendulum-v1", capacity=64, action_scale=1.0).config.input_scale[-1] == 1.0
+    assert Hedger("Pendulum-v1", capacity=64, action_scale=1.0, preset="paper").config.input_scale[-1] == 1.0
 
 
 def _documented_range(env, n=2000, seed=0):
@@ -174,7 +174,7 @@ def _documented_range(env, n=2000, seed=0):
 
 
 def test_unbounded_dimensions_from_samples():
-    model = Hedger("CartPole-v1", capacity=64, bandwidth=0.2)
+    model = Hedger("CartPole-v1", capacity=64, bandwidth=0.2, preset="paper")
     lo, hi = _documented_range(gymnasium.make("CartPole-v1"))
     box = model.env.gym_env.observation_space
     lo[[0, 2]], hi[[0, 2]] = box.low[[0, 2]], box.high[[0, 2]]   # bounded: kept
@@ -183,7 +183,7 @@ def test_unbounded_dimensions_from_samples():
     assert np.all(np.isfinite(model.config.input_scale))
     # A constant dimension declared unbounded (inf or float32's max): a unit range.
     for high in (np.inf, np.finfo(np.float32).max):
-        m = Hedger(TimeLimit(Counter(high=high), 5), capacity=64, bandwidth=0.01)
+        m = Hedger(TimeLimit(Counter(high=high), 5), capacity=64, bandwidth=0.01, preset="paper")
         np.testing.assert_allclose(m.config.input_offset[:2], [0.0, 2.5])
         np.testing.assert_allclose(m.config.input_scale[:2], [0.1, 1.0])
 
@@ -194,26 +194,27 @@ def test_truncation_is_not_terminal(terminate_at, expect):
     # (1 + 0.5 * 10 = 6) unless the step is terminal (1). Reverse replay stores the last step
     # first. A time-limit truncation at step 5 must bootstrap like any other step.
     env = TimeLimit(Counter(terminate_at), max_episode_steps=5)
-    m = Hedger(env, capacity=64, bandwidth=0.01, alpha=1.0, gamma=0.5, default_value=10.0)
+    m = Hedger(env, capacity=64, bandwidth=0.01, alpha=1.0, gamma=0.5, default_value=10.0,
+               preset="paper")
     m.learn(1)
     assert m.num_episodes == 1 and m.num_timesteps == 5
     np.testing.assert_allclose(np.asarray(m.memory.values)[:5], expect, rtol=1e-6)
     t_seen = np.asarray(m.memory.points)[0, :5] / m.config.input_scale[0]
     np.testing.assert_allclose(t_seen, [4, 3, 2, 1, 0], atol=1e-5)    # newest first
     r = m.evaluate(3)
-    assert r == {"mean_steps": 5.0, "mean_return": 5.0,
-                 "success_rate": 0.0 if terminate_at is None else 1.0}
+    assert r == {"mean_steps": 5.0, "mean_return": 5.0,       # not a goal task: no success_rate
+                 "terminated_rate": 0.0 if terminate_at is None else 1.0}
     a, _ = m.predict(np.array([2.0, 3.0], np.float32))
     assert int(a) in (-1, 0, 1)                                        # Discrete(3, start=-1)
 
 
 def test_evaluate(car):
     r1 = car.evaluate(2)
-    assert set(r1) == {"mean_steps", "mean_return", "success_rate"}
+    assert set(r1) == {"mean_steps", "mean_return", "terminated_rate", "success_rate"}
     assert 1 <= r1["mean_steps"] <= 200 and r1["mean_return"] == -r1["mean_steps"]
     assert car.evaluate(2) == r1                                       # same seeds, same policy
     assert car.evaluate(2, max_steps=7) == {"mean_steps": 7.0, "mean_return": -7.0,
-                                            "success_rate": 0.0}
+                                            "terminated_rate": 0.0, "success_rate": 0.0}
 
 
 def test_save_load_round_trip(car, tmp_path):
@@ -262,7 +263,7 @@ def test_project_envs_keep_the_fast_path():
     assert not m.host_loop and m.env == MountainCar() and m.env_id == "HedgerMountainCar-v0"
     m2 = Hedger("HedgerMountainCar-v0", capacity=64)
     assert m2.config == m.config and not m2.host_loop
-    host = Hedger("MountainCar-v0", capacity=64)
+    host = Hedger("MountainCar-v0", capacity=64, preset="paper")
     assert isinstance(host.env, GymnasiumEnv)
     with pytest.raises(InvalidInputError, match="runs in the host loop"):
         host.learn_from_demonstrations(object.__new__(type("P", (), {"act": 0, "init": 0})),
@@ -282,18 +283,3 @@ def test_import_pulls_no_env_module():
     res = subprocess.run([sys.executable, "-c", code], cwd=repo, capture_output=True,
                          text=True, timeout=120)
     assert res.returncode == 0 and "ok" in res.stdout, res.stderr[-2000:]
-
-
-def test_experiment_pieces():
-    from experiments.gymnasium_envs import Setting, random_policy, run_seed, summarise, table
-
-    setting = Setting(dict(CAR), steps=200)
-    recs = [run_seed("MountainCar-v0", setting, seed, 200, eval_episodes=1) for seed in (0, 1)]
-    assert [r["episodes"] for r in recs] == [1, 1] and recs[0]["points"] == 200
-    assert recs[0]["train_returns"] == [-200.0]
-    base = random_policy("MountainCar-v0", 2, seed=0)
-    assert base == {"mean_return": -200.0, "mean_steps": 200.0}
-    row = summarise("MountainCar-v0", recs, base, setting, 200)
-    assert row["mean_return"] == [-200.0, 0.0] and row["success_rate"] == 0.0
-    assert f"| MountainCar-v0 | 200 | bandwidth=0.05, capacity={CAP}, gamma=0.99 | -200.0 ± 0.0" \
-        in table([row])
