@@ -25,7 +25,8 @@ memory it was built from: with discrete actions its first sweep is ``backup_memo
 continuous actions the max runs over the greedy search's initial grid
 (``greedy.greedy_candidates``), without the refinement. Points stored after the plan was
 built are not backed up by it, and a slot overwritten since (a ring buffer) is read at its
-new value: the learner rebuilds it as the memory grows (``RunConfig.replan_fraction``).
+value when the plan was built: the learner rebuilds it as the memory grows
+(``RunConfig.replan_fraction``, at most 1, so that fewer than capacity writes come between).
 """
 from __future__ import annotations
 
@@ -44,7 +45,7 @@ from hedger_jax.params import (HedgerParams, flag, from_fit_space, resolve, to_f
 from hedger_jax.prediction import clip_to_neighbour_values, neighbour_design
 
 __all__ = ["BACKUP_CHUNK", "BackupPlan", "backup_targets", "backup_memory", "backup_plan",
-           "plan_targets", "backup_with_plan", "backup_sweeps"]
+           "overwritten", "plan_targets", "backup_with_plan", "backup_sweeps"]
 
 #: Next states evaluated per vmapped call of a sweep (bounds the sweep's working memory).
 BACKUP_CHUNK = 512
@@ -133,7 +134,9 @@ class BackupPlan(NamedTuple):
     indices: int32 (capacity, n, k) slots read; coef: float32 (capacity, n, k) the fit's
     coefficients; mask: bool (capacity, n, k) real neighbours; known: bool (capacity, n) the
     prediction was known (enough neighbours, finite, inside the hull); rows: bool
-    (capacity,) the slots the plan backs up (a point with a transition when it was built).
+    (capacity,) the slots the plan backs up (a point with a transition when it was built);
+    head, size: int32 () the memory's when it was built; values: float32 (capacity,) the
+    stored values then (read in place of a slot overwritten since).
     """
 
     indices: jax.Array
@@ -141,6 +144,9 @@ class BackupPlan(NamedTuple):
     mask: jax.Array
     known: jax.Array
     rows: jax.Array
+    head: jax.Array
+    size: jax.Array
+    values: jax.Array
 
 
 def _plan_query(config: HedgerConfig, memory: Memory, z: jax.Array, p: HedgerParams):
@@ -180,23 +186,35 @@ def backup_plan(config: HedgerConfig, memory: Memory,
 
     idx, coef, mask, known = _chunked(memory, chunk_plan, zeros)
     rows = valid_mask(memory) & memory.transitions.present
-    return BackupPlan(idx, coef, mask, known, rows)
+    return BackupPlan(idx, coef, mask, known, rows, memory.head, memory.size, memory.values)
+
+
+def overwritten(memory: Memory, plan: BackupPlan) -> jax.Array:
+    """bool (capacity,): the slots that held a point when the plan was built and were
+    written since (a ring buffer's oldest), assuming fewer than capacity writes since."""
+    capacity = memory.values.shape[-1]
+    slot = jnp.arange(capacity)
+    written = (memory.head - plan.head) % capacity
+    return ((slot - plan.head) % capacity < written) & (slot < plan.size)
 
 
 def plan_targets(config: HedgerConfig, memory: Memory, plan: BackupPlan,
                  params: Optional[HedgerParams] = None):
     """``backup_targets`` through a plan -> (y (capacity,), use (capacity,)): the max over
     the candidates of each known prediction c'y (clipped to its neighbours' values with
-    ``clip_to_neighbours``), ``default_value`` where not known."""
-    params = with_data_bandwidth(config, memory, params)
+    ``clip_to_neighbours``), ``default_value`` where not known. A slot overwritten since the
+    plan was built is read at its value then, and is not backed up: the plan knows nothing
+    of its new point."""
     p = resolve(config, params)
-    y = memory.values[plan.indices]                                       # (cap, n, k)
+    old = overwritten(memory, plan)
+    values = jnp.where(old, plan.values, memory.values)
+    y = values[plan.indices]                                              # (cap, n, k)
     fit = jnp.sum(jnp.where(plan.mask, plan.coef * y, 0.0), axis=-1)
     fit = jax.vmap(jax.vmap(lambda f, yy, m: clip_to_neighbour_values(p, f, yy, m)))(
         fit, y, plan.mask)
     value = jnp.where(plan.known, from_fit_space(p, fit), jnp.float32(p.default_value))
     y_next, use = _targets(config, memory, jnp.max(value, axis=-1), p)
-    return y_next, use & plan.rows
+    return y_next, use & plan.rows & ~old
 
 
 def backup_with_plan(config: HedgerConfig, memory: Memory, plan: BackupPlan,

@@ -79,7 +79,7 @@ CORRIDOR_ADAPTIVE_PARAMS = _frozen(dict(ADAPTIVE_CONTINUOUS, bandwidth_k=48,
 #: buffer that keeps the newest ``capacity`` points. ``hedger_jax.task_settings`` adds what it
 #: reads from the task (discount, action scale, the value of "don't know").
 TASK = _frozen(dict(ADAPTIVE, bandwidth=0.1, value_eps=0.0, default_value=0.0,
-                    backup_sweeps=5, capacity=20_000, full_policy="overwrite_oldest"))
+                    backup_sweeps=5, capacity=50_000, full_policy="overwrite_oldest"))
 
 #: ``Hedger``'s defaults per ``envs.make`` name: ``hedger`` (``HedgerConfig.for_env``
 #: overrides), ``run`` (``RunConfig`` overrides), and optionally ``state_scale_factors`` (S,)

@@ -18,6 +18,14 @@ from hedger_jax.settings import (TRACED_KINDS, choice, fields_of, first_failure,
 EXPLORATION = ("random", "gaussian")
 
 
+def _fraction(name, value, owner):
+    """A float in (0, 1]."""
+    value = positive_float(name, value, owner)
+    if value > 1:
+        raise ValueError(f"{name}: must be in (0, 1], got {value}")
+    return value
+
+
 @dataclasses.dataclass(frozen=True)
 class RunConfig:
     """Static settings of one learning run (the HEDGER settings live in ``HedgerConfig``).
@@ -53,7 +61,7 @@ class RunConfig:
     eval_episodes: int = setting(2500, "static", convert=integer(1))
     eval_max_steps: int = setting(200, "static", convert=integer(1))
     train_max_steps: Optional[int] = setting(None, "static", convert=integer(1, optional=True))
-    replan_fraction: float = setting(0.1, "static", convert=positive_float)
+    replan_fraction: float = setting(0.1, "static", convert=_fraction)
     reuse_neighbours: Optional[bool] = setting(None, "static",
                                                convert=lambda n, v, o: None if v is None
                                                else bool(v))

@@ -229,3 +229,25 @@ def test_a_continuous_plan_takes_the_max_over_the_search_grid():
     want = tr.reward[:N] + cfg.gamma * jnp.where(tr.terminated[:N], 0.0, q)
     np.testing.assert_allclose(np.asarray(y)[:N], np.asarray(want), rtol=1e-4, atol=1e-4)
     assert np.asarray(use).sum() == N - 1
+
+
+def test_a_plan_reads_a_slot_overwritten_since_at_its_old_value():
+    """Ring buffer: after a plan is built on a full memory, 10 new points overwrite the 10
+    oldest slots. Every other row's target is the one the plan gave before (the overwritten
+    neighbours read at their old values), and the overwritten rows are not backed up."""
+    from hedger_jax.backup import backup_plan, overwritten, plan_targets
+    from hedger_jax.memory import add_scaled
+
+    cfg = _config(capacity=N, full_policy="overwrite_oldest")
+    mem = _memory(cfg)
+    plan = backup_plan(cfg, mem)
+    before, use_before = plan_targets(cfg, mem, plan)
+    later = mem
+    for i in range(10):
+        later = add_scaled(cfg, later, jnp.full((3,), 0.15, jnp.float32), 50.0 + i, True,
+                           (jnp.float32(9.0), jnp.full((2,), 0.1, jnp.float32), False))
+    old = np.asarray(overwritten(later, plan))
+    np.testing.assert_array_equal(np.flatnonzero(old), np.arange(10))
+    after, use_after = plan_targets(cfg, later, plan)
+    np.testing.assert_array_equal(np.asarray(use_after), np.asarray(use_before) & ~old)
+    np.testing.assert_allclose(np.asarray(after)[10:], np.asarray(before)[10:], rtol=1e-6)
