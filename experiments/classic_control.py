@@ -1,7 +1,7 @@
 """HEDGER on Gymnasium's classic-control suite, against SB3's DQN / SAC on the same budgets.
 
 ``python -m experiments classic-control [--quick] [--seeds 0 1 2 3 4] [--tasks ID ...]
-[--methods hedger hedger-hand sb3] [--out DIR] [--docs DIR]``
+[--methods hedger hedger-hand sb3] [--out DIR] [--docs DIR] [--summary-only]``
 
 For each task and seed (docs/classic-control.md has the protocol and the results):
 
@@ -186,6 +186,18 @@ def result_path(out: str, env_id: str, method: str, seed: int, quick: bool) -> s
     return os.path.join(out, "quick" if quick else "full", env_id, f"{method}_seed{seed}.json")
 
 
+def load_records(out: str, quick: bool) -> List[Dict[str, Any]]:
+    """Every run record on disk under ``out`` for the mode."""
+    root = os.path.join(out, "quick" if quick else "full")
+    records = []
+    for env_id in sorted(os.listdir(root)) if os.path.isdir(root) else ():
+        for name in sorted(os.listdir(os.path.join(root, env_id))):
+            if name.endswith(".json"):
+                with open(os.path.join(root, env_id, name)) as f:
+                    records.append(json.load(f))
+    return records
+
+
 def sweep(tasks: Sequence[str], methods: Sequence[str], seeds: Sequence[int], out: str,
           quick: bool, log: Callable[[str], None] = print) -> List[Dict[str, Any]]:
     """Every (task, method, seed) run not already on disk; returns all records."""
@@ -305,10 +317,15 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--methods", nargs="+", choices=METHODS)
     parser.add_argument("--out", default="results/classic_control")
     parser.add_argument("--docs", default=None)
+    parser.add_argument("--summary-only", action="store_true",
+                        help="run nothing: the table and plot of the runs on disk")
     args = parser.parse_args(argv)
     seeds = args.seeds or (list(QUICK_SEEDS) if args.quick else list(range(5)))
     methods = args.methods or (["hedger", "hedger-hand"] if args.quick else list(METHODS))
-    records = sweep(args.tasks, methods, seeds, args.out, args.quick)
+    if args.summary_only:
+        records = load_records(args.out, args.quick)
+    else:
+        records = sweep(args.tasks, methods, seeds, args.out, args.quick)
     print(report(records, args.out, args.docs, args.quick))
     return 0
 

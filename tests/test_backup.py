@@ -140,14 +140,15 @@ def test_the_replay_stores_each_transition_beside_its_point_and_then_sweeps():
                     rng.uniform(size=T) < 0.1, np.ones(T, bool))
     mem = _memory(cfg)
     got = jax.jit(functools.partial(train_prefix, cfg))(mem, ep, jnp.int32(T))
-    replayed, _ = train_episode(cfg, mem, ep)
+    replayed, _ = jax.jit(functools.partial(train_episode, cfg))(mem, ep)
     tr = got.transitions
     slots = N + np.arange(T)[::-1]                         # newest first
     np.testing.assert_array_equal(np.asarray(tr.reward)[slots], ep.reward)
     np.testing.assert_array_equal(np.asarray(tr.next_obs)[:, slots], ep.next_obs.T)
     np.testing.assert_array_equal(np.asarray(tr.terminated)[slots], ep.terminated)
     assert np.asarray(tr.present)[slots].all()
-    swept = backup_memory(cfg, backup_memory(cfg, replayed))
+    exact = jax.jit(functools.partial(backup_memory, cfg))
+    swept = exact(exact(replayed))
     np.testing.assert_allclose(np.asarray(got.values), np.asarray(swept.values), rtol=1e-6,
                                atol=1e-6)
 
@@ -157,7 +158,7 @@ def test_a_non_finite_target_is_refused_and_flagged():
     mem = _memory(cfg)
     tr = mem.transitions
     mem = mem._replace(transitions=tr._replace(reward=tr.reward.at[7].set(jnp.inf)))
-    out = backup_memory(cfg, mem)
+    out = jax.jit(functools.partial(backup_memory, cfg))(mem)
     assert int(out.flags) & FLAG_NONFINITE
     assert float(out.values[7]) == float(mem.values[7])
     assert np.all(np.isfinite(np.asarray(out.values)))
@@ -194,11 +195,11 @@ def test_sweeps_through_a_plan_equal_the_float64_reference(extra):
     once = sweep(mem, plan)
     if not extra:
         _assert_sweep(cfg, mem, once)
-    np.testing.assert_allclose(np.asarray(once.values), np.asarray(backup_memory(cfg, mem).values),
+    exact = jax.jit(functools.partial(backup_memory, cfg))
+    np.testing.assert_allclose(np.asarray(once.values), np.asarray(exact(mem).values),
                                rtol=2e-4, atol=2e-4)
     twice = sweep(once, plan)
-    np.testing.assert_allclose(np.asarray(twice.values),
-                               np.asarray(backup_memory(cfg, backup_memory(cfg, mem)).values),
+    np.testing.assert_allclose(np.asarray(twice.values), np.asarray(exact(exact(mem)).values),
                                rtol=5e-4, atol=5e-4)
 
 
@@ -221,11 +222,11 @@ def test_a_continuous_plan_takes_the_max_over_the_search_grid():
 
     cfg = _config(discrete_actions=None)
     mem = _memory(cfg)
-    y, use = plan_targets(cfg, mem, backup_plan(cfg, mem))
+    y, use = jax.jit(lambda m: plan_targets(cfg, m, backup_plan(cfg, m)))(mem)
     tr = mem.transitions
     acts = greedy_candidates(cfg)
-    q = jax.vmap(lambda s: jnp.max(jax.vmap(lambda a: predict(cfg, mem, s, a)[0])(acts)))(
-        tr.next_obs.T[:N])
+    q = jax.jit(jax.vmap(lambda s: jnp.max(jax.vmap(lambda a: predict(cfg, mem, s, a)[0])(
+        acts))))(tr.next_obs.T[:N])
     want = tr.reward[:N] + cfg.gamma * jnp.where(tr.terminated[:N], 0.0, q)
     np.testing.assert_allclose(np.asarray(y)[:N], np.asarray(want), rtol=1e-4, atol=1e-4)
     assert np.asarray(use).sum() == N - 1
@@ -240,14 +241,15 @@ def test_a_plan_reads_a_slot_overwritten_since_at_its_old_value():
 
     cfg = _config(capacity=N, full_policy="overwrite_oldest")
     mem = _memory(cfg)
-    plan = backup_plan(cfg, mem)
-    before, use_before = plan_targets(cfg, mem, plan)
+    plan = jax.jit(functools.partial(backup_plan, cfg))(mem)
+    targets = jax.jit(functools.partial(plan_targets, cfg))
+    before, use_before = targets(mem, plan)
     later = mem
     for i in range(10):
         later = add_scaled(cfg, later, jnp.full((3,), 0.15, jnp.float32), 50.0 + i, True,
                            (jnp.float32(9.0), jnp.full((2,), 0.1, jnp.float32), False))
     old = np.asarray(overwritten(later, plan))
     np.testing.assert_array_equal(np.flatnonzero(old), np.arange(10))
-    after, use_after = plan_targets(cfg, later, plan)
+    after, use_after = targets(later, plan)
     np.testing.assert_array_equal(np.asarray(use_after), np.asarray(use_before) & ~old)
     np.testing.assert_allclose(np.asarray(after)[10:], np.asarray(before)[10:], rtol=1e-6)
