@@ -55,6 +55,7 @@ TASKS: Dict[str, Task] = {
 METHODS = ("hedger", "hedger-hand", "sb3")
 LABELS = {"hedger": "HEDGER (defaults)", "hedger-hand": "HEDGER + 5 hand-policy episodes",
           "sb3": "SB3 (Zoo hyperparameters)"}
+COLORS = {"hedger": "C0", "hedger-hand": "C1", "sb3": "C2"}
 HAND_EPISODES = 5
 CURVE_POINTS = 5
 CURVE_EPISODES = 10
@@ -280,8 +281,9 @@ def plot(summary: Dict[str, Dict[str, Dict[str, Any]]], path: str) -> None:
         for method, row in summary.get(env_id, {}).items():
             x = np.asarray(row["steps"])
             m, h = np.asarray(row["curve_mean"]), np.nan_to_num(np.asarray(row["curve_half"]))
-            ax.plot(x, m, marker="o", label=LABELS[method])
-            ax.fill_between(x, m - h, m + h, alpha=0.2)
+            color = COLORS[method]                 # one colour per method on every panel
+            ax.plot(x, m, marker="o", label=LABELS[method], color=color)
+            ax.fill_between(x, m - h, m + h, alpha=0.2, color=color)
         ax.axhline(task.target, color="k", ls=":", lw=1)
         ax.set_title(env_id)
         ax.set_xlabel("env steps")

@@ -72,12 +72,12 @@ CORRIDOR_ADAPTIVE_PARAMS = _frozen(dict(ADAPTIVE_CONTINUOUS, bandwidth_k=48,
                                         greedy_temperature=0.3))
 
 #: Any other Gymnasium task (beyond the paper; docs/classic-control.md): the adaptive preset
-#: with room for its data-chosen width (at most 2 x 0.1 of the [0, 1] scaled ranges: the
-#: states of 4-D tasks are sparse), plain values (the task's own reward keeps them of order 1 / (1 - gamma)), five
-#: memory-wide sweeps after every episode through a plan (``hedger_jax.backup``) rebuilt
-#: as the memory grows (``RunConfig.replan_fraction``), and a ring
-#: buffer that keeps the newest ``capacity`` points. ``hedger_jax.task_settings`` adds what it
-#: reads from the task (discount, action scale, the value of "don't know").
+#: with room for its data-chosen width (at most 2 x 0.1 of the [0, 1] scaled ranges: 4-D
+#: states are sparse), plain values (the task's own reward keeps them within 1 / (1 - gamma)
+#: of it), "don't know" worth 0, five memory-wide sweeps after every episode through a plan
+#: (``hedger_jax.backup``) rebuilt as the memory grows (``RunConfig.replan_fraction``), and a
+#: ring buffer that keeps the newest ``capacity`` points. ``hedger_jax.task_settings`` adds
+#: what it reads from the task (the discount, the action's scale).
 TASK = _frozen(dict(ADAPTIVE, bandwidth=0.1, value_eps=0.0, default_value=0.0,
                     backup_sweeps=5, capacity=50_000, full_policy="overwrite_oldest"))
 

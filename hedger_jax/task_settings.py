@@ -1,22 +1,22 @@
 """Settings read from a Gymnasium task, so that ``Hedger(env_id)`` needs no hand-picked ones.
 
 ``task_settings(env)`` starts from ``presets.TASK`` (one set for every task; the run's
-settings are ``RunConfig``'s defaults)
-and adds what differs between tasks only through what the environment declares or shows:
+settings are ``RunConfig``'s defaults) and adds what differs between tasks only through what
+the environment declares:
 
 * the discount: gamma = 1 - 2 / T for the time limit T, within [0.9, 0.99] (a horizon of
   about half an episode, never beyond 100 steps);
 * a continuous action scaled like the observations: its [low, high] spans 1
-  (``action_scale = 1 / (high - low)``);
-* "don't know" is worth 0 (``default_value``, in ``TASK``), the value of a future that brings nothing:
-  optimistic where every step costs (mountain car, acrobot, pendulum: untried actions look
-  best until tried), cautious where every step earns (CartPole: the unknown is treated like
-  the fall that ends the rewards).
+  (``action_scale = 1 / (high - low)``).
 
-Observations are scaled to [0, 1] from their bounds, or from random-action samples where
-unbounded (``hedger_jax.environments``); the kernel width is the data-chosen one
-(``bandwidth_k``); the memory keeps the newest ``capacity`` points (``full_policy``
-"overwrite_oldest"), so ``learn`` runs past the capacity.
+"Don't know" is worth 0 (``default_value`` in ``TASK``), the value of a future that brings
+nothing: optimistic where every step costs (the cars, the acrobot, the pendulum: untried
+actions look best until tried), cautious where every step earns (CartPole: the unknown is
+treated like the fall that ends the rewards). Observations are scaled to [0, 1] from their
+bounds, or from random-action samples where unbounded (``hedger_jax.environments``); the
+kernel width is the data-chosen one (``bandwidth_k``); the memory keeps the newest
+``capacity`` points (``full_policy`` "overwrite_oldest"), so ``learn`` runs past the
+capacity.
 """
 from __future__ import annotations
 
