@@ -19,7 +19,7 @@ import time
 from typing import Dict, List, Optional
 
 
-from hedger_jax import cpu
+from hedger_jax import cpu, distributed
 from experiments.figures import FIGURES, PAPER, build_figure
 from experiments.plotting import plot_figure
 from experiments.figures import Variant
@@ -78,8 +78,12 @@ def run_figure(name: str, mode: str, seeds: List[int], out: str, seed_batch: int
                base_seed: int, only: Optional[List[str]] = None,
                eval_episodes: Optional[int] = None, seed_mode: str = "vmap",
                devices: Optional[int] = 1) -> Dict:
+    import jax
+
     figure = select_variants(build_figure(name, mode), only, eval_episodes)
-    print(f"{figure.title} [{mode}, {len(seeds)} seeds]")
+    main_process = jax.process_index() == 0   # across processes only process 0 writes files
+    if main_process:
+        print(f"{figure.title} [{mode}, {len(seeds)} seeds]")
     t0 = time.time()
     # Variants that differ only in traced settings (an ablation's on and off) run as one
     # program; a group's batch holds seed_batch seeds of each of its variants.
@@ -98,12 +102,13 @@ def run_figure(name: str, mode: str, seeds: List[int], out: str, seed_batch: int
             "reference": refs, "paper": paper, "versions": versions(), "variants": records,
             "wall_seconds": time.time() - t0,
             "compute_seconds": sum(r.get("compute_seconds", 0.0) for r in records)}
-    atomic_write_json(os.path.join(out, f"{name}.json"), data)
-    atomic_write_bytes(os.path.join(out, f"{name}.csv"), _csv(records))
-    plot_figure(os.path.join(out, f"{name}.png"), figure.title, figure.x_label, records, refs,
-                paper)
-    print(f"  wrote {os.path.join(out, name)}.{{json,csv,png}} ({time.time() - t0:.0f} s; "
-          f"computing the results took {data['compute_seconds']:.0f} s)")
+    if main_process:
+        atomic_write_json(os.path.join(out, f"{name}.json"), data)
+        atomic_write_bytes(os.path.join(out, f"{name}.csv"), _csv(records))
+        plot_figure(os.path.join(out, f"{name}.png"), figure.title, figure.x_label, records, refs,
+                    paper)
+        print(f"  wrote {os.path.join(out, name)}.{{json,csv,png}} ({time.time() - t0:.0f} s; "
+              f"computing the results took {data['compute_seconds']:.0f} s)")
     return data
 
 
@@ -146,6 +151,15 @@ def main(argv=None) -> int:
     parser.add_argument("--eval-episodes", type=int, default=None, metavar="N",
                         help="evaluation episodes per evaluation point (default: the mode's, "
                              "2500 with --full)")
+    parser.add_argument("--processes", type=int, default=None, metavar="N",
+                        help="run as process --process-id of N joined by JAX's multi-process "
+                             "runtime (docs/scaling.md); default: one process, or what the "
+                             "environment describes (SLURM, Open MPI, python -m "
+                             "hedger_jax.launch)")
+    parser.add_argument("--process-id", type=int, default=None, metavar="I",
+                        help="this process's index in 0..N-1 (with --processes)")
+    parser.add_argument("--coordinator", default=None, metavar="HOST:PORT",
+                        help="process 0's address (with --processes)")
     args = parser.parse_args(argv)
     mode_name = args.mode or "quick"
     if args.seeds < 1:
@@ -154,14 +168,15 @@ def main(argv=None) -> int:
         parser.error("--seed-batch must be >= 1")
     if args.eval_episodes is not None and args.eval_episodes < 1:
         parser.error("--eval-episodes must be >= 1")
+    processes = join_processes(parser, args)
     if args.devices == "cores":
-        n = min(os.cpu_count() or 1, args.seed_batch, args.seeds)
+        n = (distributed.local_cores() if processes > 1 else
+             min(os.cpu_count() or 1, args.seed_batch, args.seeds))
         if n > 1 and not cpu.accelerator_installed():
             cpu.configure(host_devices=n)
         else:
             cpu.configure()
-        import jax
-        devices = len(jax.devices())
+        devices = None                       # all of them
     else:
         try:
             devices = int(args.devices)
@@ -169,7 +184,17 @@ def main(argv=None) -> int:
             devices = 0
         if devices < 1:
             parser.error("--devices must be a number >= 1 or 'cores'")
-        cpu.configure()
+        if processes > 1 and not cpu.accelerator_installed():
+            cpu.configure(host_devices=devices)   # with several processes: N per process
+        else:
+            cpu.configure()
+    if processes > 1:
+        distributed.initialize(args.coordinator, args.processes, args.process_id)
+    import jax
+
+    if devices is None or processes > 1:
+        devices = len(jax.devices())
+    main_process = jax.process_index() == 0
     problem = output_problem(args.out)
     if problem:
         parser.error(f"--out: {problem}")
@@ -192,10 +217,27 @@ def main(argv=None) -> int:
         return 130
     text = "# hedger-jax: reproduction summary\n\n" + "\n".join(
         summaries[n] for n in FIGURES if n in summaries)
-    atomic_write_bytes(os.path.join(args.out, "summary.md"), text.encode())
-    print()
-    print(text)
+    if main_process:
+        atomic_write_bytes(os.path.join(args.out, "summary.md"), text.encode())
+        print()
+        print(text)
     return 0
+
+
+def join_processes(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    """How many processes this run has (1: a plain run): from --processes, --process-id and
+    --coordinator, else from the environment (``hedger_jax.distributed.detected_cluster``)."""
+    flags = (args.processes, args.process_id, args.coordinator)
+    if all(f is None for f in flags):
+        found = distributed.detected_cluster()
+        return 1 if found is None else found[1]
+    if args.processes is None or args.processes < 1:
+        parser.error("--processes N (N >= 1) is needed with --process-id and --coordinator")
+    if args.processes > 1 and (args.process_id is None or args.coordinator is None):
+        parser.error("--processes N > 1 needs --process-id and --coordinator HOST:PORT")
+    if args.process_id is not None and not 0 <= args.process_id < args.processes:
+        parser.error(f"--process-id must be in 0..{args.processes - 1}")
+    return args.processes
 
 
 if __name__ == "__main__":

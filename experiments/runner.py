@@ -32,6 +32,7 @@ from hedger_jax.cpu import jit as _jit
 from hedger_jax.files import atomic_write
 from hedger_jax.memory import memory_check
 from hedger_jax.params import HedgerParams
+from hedger_jax.sharding import gather, global_put
 
 from experiments.figures import Variant
 
@@ -170,9 +171,10 @@ def compiled_group(static: Variant, config: HedgerConfig, seed_mode: str = "vmap
 
 def usable_devices(devices: Optional[int]) -> int:
     """How many devices a run splits its seed batches over: ``devices`` (None: all of
-    ``jax.devices()``), at most as many as there are."""
+    ``jax.devices()``), at most as many as there are; across processes always all of them
+    (every process must take part in each program)."""
     have = len(jax.devices())
-    if devices is None:
+    if devices is None or jax.process_count() > 1:    # several processes: all of their devices
         return have
     if int(devices) < 1:
         raise ValueError(f"devices: must be >= 1, got {devices}")
@@ -183,49 +185,90 @@ def _to_numpy(tree):
     return jax.tree_util.tree_map(lambda x: np.asarray(x), tree)
 
 
-def _save_checkpoint(path: str, state, results: List[BlockResult], block: int, key: str):
-    leaves = jax.tree_util.tree_leaves(_to_numpy(state))
-    res_leaves = jax.tree_util.tree_leaves(
-        _to_numpy(jax.tree_util.tree_map(lambda *xs: np.stack(xs, 1), *results)))
+def _member_slices(leaf) -> List[tuple]:
+    """(first member, NumPy block of members) for each shard of ``leaf`` this process holds."""
+    out, seen = [], set()
+    for shard in leaf.addressable_shards:
+        first = (shard.index[0].start or 0) if shard.index else 0
+        if first not in seen:                 # replicated shards hold the same members
+            seen.add(first)
+            out.append((first, np.asarray(shard.data)))
+    return out
+
+
+def owned_members(tree) -> Dict[int, Any]:
+    """{member index: that member's pytree (NumPy)} for the members (leading axis) whose data
+    this process holds: all of them in one process, its devices' share across processes."""
+    leaves, treedef = jax.tree_util.tree_flatten(tree)
+    per_member: Dict[int, List[np.ndarray]] = {}
+    for leaf in leaves:
+        for first, block in _member_slices(leaf):
+            for k in range(block.shape[0]):
+                per_member.setdefault(first + k, []).append(block[k])
+    return {j: jax.tree_util.tree_unflatten(treedef, xs) for j, xs in per_member.items()
+            if len(xs) == len(leaves)}
+
+
+def _ckpt_path(cache_dir: str, batch_key: str, member: int, block: int) -> str:
+    return os.path.join(cache_dir, f"ckpt-{batch_key}-m{member}-b{block}.npz")
+
+
+def _ckpt_blocks(cache_dir: str, batch_key: str) -> Dict[int, List[int]]:
+    """{member: blocks with a checkpoint file} of a batch."""
+    prefix, found = f"ckpt-{batch_key}-m", {}
+    for name in os.listdir(cache_dir) if os.path.isdir(cache_dir) else ():
+        if name.startswith(prefix) and name.endswith(".npz"):
+            member, _, block = name[len(prefix):-4].partition("-b")
+            if member.isdigit() and block.isdigit():
+                found.setdefault(int(member), []).append(int(block))
+    return found
+
+
+def _save_member(path: str, state, results, block: int, key: str) -> None:
+    """One member's state and its results of blocks 0..block (leaves stacked on axis 0)."""
     import io
 
-    buf = io.BytesIO()
-    arrays = {f"s{i}": a for i, a in enumerate(leaves)}
-    arrays.update({f"r{i}": a for i, a in enumerate(res_leaves)})
+    arrays = {f"s{i}": np.asarray(a) for i, a in enumerate(jax.tree_util.tree_leaves(state))}
+    arrays.update({f"r{i}": np.asarray(a)
+                   for i, a in enumerate(jax.tree_util.tree_leaves(results))})
     arrays["meta"] = np.frombuffer(json.dumps({"block": block, "key": key}).encode(), np.uint8)
+    buf = io.BytesIO()
     np.savez(buf, **arrays)
     atomic_write_bytes(path, buf.getvalue())
 
 
-def _load_checkpoint(path: str, state_like, result_like, key: str):
-    """(state, results list, block) or None if absent / for another variant / unreadable."""
-    if not os.path.exists(path):
-        return None
+def _load_member(path: str, state_like, results_like, block: int, key: str):
+    """(state, results) of one member (NumPy, shapes as ``*_like``), or None if the file is
+    missing, for another batch or block, or unreadable."""
     try:
         with np.load(path) as z:
             meta = json.loads(bytes(z["meta"]).decode())
-            if meta.get("key") != key:
+            if meta.get("key") != key or meta.get("block") != block:
                 return None
-            s_leaves, s_def = jax.tree_util.tree_flatten(state_like)
-            r_leaves, r_def = jax.tree_util.tree_flatten(result_like)
-            state = jax.tree_util.tree_unflatten(
-                s_def, [jnp.asarray(z[f"s{i}"]) for i in range(len(s_leaves))])
-            stacked = [z[f"r{i}"] for i in range(len(r_leaves))]
-            # Shapes as this run's (e.g. not padded for another number of devices).
-            for got, like in zip(jax.tree_util.tree_leaves(state), s_leaves):
-                if got.shape != like.shape or got.dtype != like.dtype:
-                    raise ValueError(f"state leaf {got.shape} {got.dtype}, this run's "
-                                     f"{like.shape} {like.dtype}")
-            for got, like in zip(stacked, r_leaves):
-                if got.shape[:1] + got.shape[2:] != like.shape[:1] + like.shape[1:]:
-                    raise ValueError(f"result leaf {got.shape}, this run's {like.shape}")
+            trees = []
+            for prefix, like in (("s", state_like), ("r", results_like)):
+                leaves, treedef = jax.tree_util.tree_flatten(like)
+                got = [z[f"{prefix}{i}"] for i in range(len(leaves))]
+                for g, l in zip(got, leaves):
+                    if g.shape != l.shape or g.dtype != l.dtype:
+                        raise ValueError(f"leaf {g.shape} {g.dtype}, this run's {l.shape} "
+                                         f"{l.dtype}")
+                trees.append(jax.tree_util.tree_unflatten(treedef, got))
     except Exception as err:  # a corrupt checkpoint is ignored (the run restarts), not trusted
         print(f"warning: ignoring unreadable checkpoint {path}: {err}")
         return None
-    n_done = stacked[0].shape[1]
-    results = [jax.tree_util.tree_unflatten(r_def, [a[:, j] for a in stacked])
-               for j in range(n_done)]
-    return state, results, int(meta["block"])
+    return tuple(trees)
+
+
+def _member_like(tree):
+    """Shapes of one member of a batched pytree of shapes."""
+    return jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape[1:], x.dtype), tree)
+
+
+def _blocks_like(tree, n_blocks: int):
+    """Shapes of ``n_blocks`` stacked copies of one member's pytree of shapes."""
+    return jax.tree_util.tree_map(
+        lambda x: jax.ShapeDtypeStruct((n_blocks,) + x.shape, x.dtype), tree)
 
 
 def _cached(path: str) -> Optional[Dict[str, Any]]:
@@ -270,10 +313,13 @@ def run_sweep(variants: List[Variant], seeds: List[int], out_dir: str, *, base_s
     cache_dir = os.path.join(out_dir, "cache")
     paths = [os.path.join(cache_dir, f"{variant_key(v, seeds, base_seed)}.json")
              for v in variants]
-    records: List[Optional[Dict[str, Any]]] = [_cached(p) for p in paths]
+    # Process 0's view of what is on disk, so that every process takes the same branches.
+    found = _as_process_zero([_cached(p) is not None for p in paths])
+    records: List[Optional[Dict[str, Any]]] = [_cached(p) if f else None
+                                               for p, f in zip(paths, found)]
     todo = [i for i, r in enumerate(records) if r is None]
     for i, rec in enumerate(records):
-        if rec is not None and progress:
+        if rec is not None and progress and jax.process_index() == 0:
             print(f"  {variants[i].label}: cached result {paths[i]}")
     if todo:
         t0 = time.time()
@@ -294,7 +340,8 @@ def run_sweep(variants: List[Variant], seeds: List[int], out_dir: str, *, base_s
                 "versions": versions(), "complete": True, "compute_seconds": share,
                 **{k: a[j].tolist() for k, a in arrays["per_variant"].items()},
             }
-            atomic_write_json(paths[i], record)
+            if jax.process_index() == 0:
+                atomic_write_json(paths[i], record)
             records[i] = record
     return [dict(r, label=v.label) for r, v in zip(records, variants)]
 
@@ -320,7 +367,7 @@ def _run_members(variants: List[Variant], seeds: List[int], cache_dir: str, base
     batches = [members[i:i + size] for i in range(0, len(members), size)]
     n_blocks = variants[0].run.n_blocks
     bar = None
-    if progress:
+    if progress and jax.process_index() == 0:
         from tqdm.auto import tqdm
 
         desc = label or (variants[0].label if len(variants) == 1 else
@@ -335,7 +382,7 @@ def _run_members(variants: List[Variant], seeds: List[int], cache_dir: str, base
             [variant_key(variants[i], [s], base_seed) for i, s in batch]).encode()
         ).hexdigest()[:16]
         batch_path = os.path.join(cache_dir, f"batch-{batch_key}.json")
-        if os.path.exists(batch_path):
+        if _as_process_zero([os.path.exists(batch_path)])[0]:
             with open(batch_path) as f:
                 arrays = {k: np.asarray(v) for k, v in json.load(f).items()}
             if bar is not None:
@@ -343,7 +390,11 @@ def _run_members(variants: List[Variant], seeds: List[int], cache_dir: str, base
         else:
             arrays = _run_batch(batch, all_params, base_seed, n_dev, init, run_block,
                                 n_blocks, cache_dir, batch_key, bar, on_block)
-            atomic_write_json(batch_path, {k: np.asarray(v).tolist() for k, v in arrays.items()})
+            if jax.process_index() == 0:      # one writer; every process has the results
+                atomic_write_json(batch_path,
+                                  {k: np.asarray(v).tolist() for k, v in arrays.items()})
+            _barrier(f"done-{batch_key}")
+            _remove_checkpoints(cache_dir, batch_key, set(range(len(batch))))
         for j, member in enumerate(batch):
             for f in fields:
                 out[f][member] = np.asarray(arrays[f])[j]
@@ -354,51 +405,162 @@ def _run_members(variants: List[Variant], seeds: List[int], cache_dir: str, base
     return {"info": info, "per_variant": per_variant}
 
 
+def _member_sharding(n_dev: int):
+    """How a batch's members are split: over the first ``n_dev`` devices (None: one device)."""
+    if n_dev == 1:
+        return None
+    mesh = jax.sharding.Mesh(np.asarray(jax.devices()[:n_dev], dtype=object), ("seeds",))
+    return jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("seeds"))
+
+
+def _place(tree, sharding):
+    """Host arrays (equal on every process) on the devices, split by ``sharding``."""
+    if sharding is None:
+        return jax.tree_util.tree_map(jnp.asarray, tree)
+    return global_put(tree, sharding)
+
+
+def _check_memories(state) -> None:
+    """``memory_check`` on every member's memory (flags gathered from every process)."""
+    memory_check(state.memory._replace(flags=gather(state.memory.flags)))
+
+
+def _barrier(name: str) -> None:
+    """Wait for every process (a no-op in one process)."""
+    if jax.process_count() > 1:
+        from jax.experimental import multihost_utils
+
+        multihost_utils.sync_global_devices(name)
+
+
+def _as_process_zero(flags: List[bool]) -> List[bool]:
+    """Process 0's ``flags`` on every process (a no-op in one process)."""
+    if jax.process_count() == 1:
+        return list(flags)
+    from jax.experimental import multihost_utils
+
+    return [bool(f) for f in multihost_utils.broadcast_one_to_all(np.asarray(flags, bool))]
+
+
+def _agree(value: int) -> int:
+    """The smallest of every process's ``value`` (so that all take the same branch)."""
+    if jax.process_count() == 1:
+        return value
+    from jax.experimental import multihost_utils
+
+    return int(np.min(multihost_utils.process_allgather(np.int32(value))))
+
+
+def _remove_checkpoints(cache_dir: str, batch_key: str, members=None, blocks=None) -> None:
+    """Delete a batch's checkpoint files (only these members / blocks when given)."""
+    for j, bs in _ckpt_blocks(cache_dir, batch_key).items():
+        for b in bs:
+            if (members is None or j in members) and (blocks is None or b in blocks):
+                try:
+                    os.unlink(_ckpt_path(cache_dir, batch_key, j, b))
+                except FileNotFoundError:     # another process's copy of a padded member
+                    pass
+
+
+def _save_block(cache_dir: str, batch_key: str, state, results: List[Any], block: int,
+                n: int) -> None:
+    """Checkpoint this process's members after ``block``, then (once every process has) drop
+    their previous block's files: some complete block is on disk for every member at all
+    times, whatever the process count of the run that resumes it."""
+    stacked = jax.tree_util.tree_map(lambda *xs: np.stack(xs), *results)
+    members = owned_members(state)
+    owned = [j for j in members if j < n]
+    for j in owned:
+        _save_member(_ckpt_path(cache_dir, batch_key, j, block), members[j],
+                     jax.tree_util.tree_map(lambda x: x[:, j], stacked), block, batch_key)
+    _barrier(f"ckpt-{batch_key}-{block}")
+    if block > 0:
+        _remove_checkpoints(cache_dir, batch_key, set(owned), set(range(block)))
+
+
+def _resume(cache_dir: str, batch_key: str, n: int, padded_n: int, state_like, first_like,
+            sharding):
+    """(state placed as ``sharding``, host results per block, block) from the batch's member
+    checkpoints, or None (then no checkpoint is left). Every process agrees on the block."""
+    found = _ckpt_blocks(cache_dir, batch_key)
+    done = min((max(found[j]) if found.get(j) else -1) for j in range(n))
+    loaded = []
+    if done >= 0:
+        state1, res1 = _member_like(state_like), _blocks_like(_member_like(first_like), done + 1)
+        for j in range(n):
+            member = _load_member(_ckpt_path(cache_dir, batch_key, j, done), state1, res1,
+                                  done, batch_key)
+            if member is None:
+                done = -1
+                break
+            loaded.append(member)
+    lowest, highest = _agree(done), -_agree(-done)
+    if lowest < 0 or lowest != highest:
+        _barrier(f"fresh-{batch_key}")
+        if jax.process_index() == 0:
+            _remove_checkpoints(cache_dir, batch_key)
+        _barrier(f"cleared-{batch_key}")
+        return None
+    rows = [loaded[min(j, n - 1)] for j in range(padded_n)]   # padding repeats the last member
+    leaves, treedef = jax.tree_util.tree_flatten(state_like)
+    member_leaves = [jax.tree_util.tree_leaves(r[0]) for r in rows]
+    if sharding is None:
+        placed = [jnp.asarray(np.stack([m[i] for m in member_leaves])) for i in range(len(leaves))]
+    else:
+        placed = [jax.make_array_from_callback(
+            like.shape, sharding,
+            lambda index, i=i: np.stack([member_leaves[j][i]
+                                         for j in range(padded_n)[index[0]]]))
+            for i, like in enumerate(leaves)]
+    state = jax.tree_util.tree_unflatten(treedef, placed)
+    results = [jax.tree_util.tree_map(lambda *xs, b=b: np.stack([x[b] for x in xs]),
+                                      *[r[1] for r in rows]) for b in range(done + 1)]
+    return state, results, done
+
+
 def _run_batch(batch, all_params, base_seed, n_dev, init, run_block, n_blocks, cache_dir,
                batch_key, bar, on_block) -> Dict[str, np.ndarray]:
-    """One batch of members through init and every block, checkpointed after each block."""
-    ckpt_path = os.path.join(cache_dir, f"ckpt-{batch_key}.npz")
-    padded = batch + [batch[-1]] * ((-len(batch)) % n_dev)
-    keys = jnp.stack([jax.random.fold_in(jax.random.PRNGKey(base_seed), s) for _, s in padded])
-    params = jax.tree_util.tree_map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]),
+    """One batch of members through init and every block, checkpointed after each block.
+    Across processes each process runs and checkpoints its devices' members; the results are
+    gathered to every process."""
+    n = len(batch)
+    padded = batch + [batch[-1]] * ((-n) % n_dev)
+    keys = np.stack([np.asarray(jax.random.fold_in(jax.random.PRNGKey(base_seed), s))
+                     for _, s in padded])
+    params = jax.tree_util.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs]),
                                     *[all_params[i] for i, _ in padded])
+    sharding = _member_sharding(n_dev)
+    keys, params = _place((keys, params), sharding)
     state_like, first_like = jax.eval_shape(init, keys, params)
-    resumed = _load_checkpoint(ckpt_path, state_like, first_like, batch_key)
+    resumed = _resume(cache_dir, batch_key, n, len(padded), state_like, first_like, sharding)
     if resumed is None:
         state, first = init(keys, params)
-        memory_check(state.memory)
-        results = [first]
+        _check_memories(state)
+        results = [gather(first)]
         done = 0
-        _save_checkpoint(ckpt_path, state, results, done, batch_key)
+        _save_block(cache_dir, batch_key, state, results, done, n)
     else:
         state, results, done = resumed
-        if n_dev > 1:   # the checkpoint's arrays, split over the devices as run_block wants
-            state = jax.device_put(state, jax.sharding.NamedSharding(
-                jax.sharding.Mesh(np.asarray(jax.devices()[:n_dev], dtype=object),
-                                  ("seeds",)), jax.sharding.PartitionSpec("seeds")))
     if bar is not None:
         bar.update(done + 1)
     for blk in range(done, n_blocks):
         state, res = run_block(state, params)
-        memory_check(state.memory)
-        results.append(res)
-        _save_checkpoint(ckpt_path, state, results, blk + 1, batch_key)
+        _check_memories(state)
+        results.append(gather(res))
+        _save_block(cache_dir, batch_key, state, results, blk + 1, n)
         if bar is not None:
-            steps = np.asarray(res.evaluation.mean_steps)[:len(batch)]
+            steps = np.asarray(results[-1].evaluation.mean_steps)[:n]
             bar.set_postfix(steps=f"{float(np.mean(steps)):.1f}")
             bar.update(1)
         if on_block is not None:
             on_block(blk + 1)
     stacked = jax.tree_util.tree_map(
-        lambda *xs: np.stack([np.asarray(x)[:len(batch)] for x in xs], 1), *results)
-    arrays = {"points": stacked.points, "episodes": stacked.episodes,
-              "mean_steps": stacked.evaluation.mean_steps,
-              "success_rate": stacked.evaluation.success_rate,
-              "train_steps_mean": stacked.train_steps_mean,
-              "memory_size": stacked.memory_size}
-    if os.path.exists(ckpt_path):
-        os.unlink(ckpt_path)
-    return arrays
+        lambda *xs: np.stack([np.asarray(x)[:n] for x in xs], 1), *results)
+    return {"points": stacked.points, "episodes": stacked.episodes,
+            "mean_steps": stacked.evaluation.mean_steps,
+            "success_rate": stacked.evaluation.success_rate,
+            "train_steps_mean": stacked.train_steps_mean,
+            "memory_size": stacked.memory_size}
 
 
 def config_of(variant: Variant) -> HedgerConfig:

@@ -16,9 +16,10 @@ pure function; ``Hedger`` is the host-side learner.
 
 Importing it changes nothing global. ``hedger_jax.jit`` is ``jax.jit`` with HEDGER's
 per-program XLA options; ``hedger_jax.cpu.configure()`` tunes the whole process for CPU speed
-(call it before any JAX computation).
+(call it before any JAX computation). ``sweep(train, keys, params)`` runs a sweep's members
+split over every device, of every process once ``hedger_jax.distributed.initialize()`` ran.
 """
-from hedger_jax import cpu
+from hedger_jax import cpu, distributed
 from hedger_jax.cpu import jit
 from hedger_jax.config import HedgerConfig, StaticFieldError
 from hedger_jax.presets import ADAPTIVE, ADAPTIVE_CONTINUOUS, TASK
@@ -35,6 +36,7 @@ from hedger_jax.checkpoint import (Checkpoint, CheckpointError, load_checkpoint,
                                    read_checkpoint_header, save_checkpoint)
 from hedger_jax.learner import Hedger, make_env
 from hedger_jax.validation import InvalidInputError
+from hedger_jax.sharding import sweep
 
 from hedger_jax.version import __version__
 
@@ -47,6 +49,6 @@ __all__ = [
     "backup_memory", "backup_plan", "backup_with_plan", "BackupPlan",
     "RunConfig", "make_train", "transitions_from_demonstrations", "Hedger", "make_env",
     "Checkpoint", "CheckpointError", "save_checkpoint", "load_checkpoint",
-    "read_checkpoint_header", "InvalidInputError", "cpu", "jit",
+    "read_checkpoint_header", "InvalidInputError", "cpu", "distributed", "jit", "sweep",
     "__version__",
 ]

@@ -1,24 +1,25 @@
-"""Seed sweeps split over devices.
+"""Sweeps split over devices: ``sweep(train, keys, params)``.
 
-Each device runs its share of the seeds inside one jitted program (``jax.shard_map`` over a
-1-D mesh named ``"seeds"``)::
+Each device runs its share of the members (a seed and, optionally, its settings) inside one
+jitted program (``jax.shard_map`` over a 1-D mesh named ``"seeds"``)::
 
     train = make_train(env, config, run).train
-    state, results = shard_seeds(train, jax.random.split(key, 64))       # all devices
+    results = sweep(train, keys, params)        # every device of every process
 
-Within a device the seeds run either vmapped (``per_device="vmap"``: one batched program, what
-a GPU wants) or one after another (``"map"``: ``lax.map``, the single-seed program in a loop).
-``"auto"`` (default) picks ``"map"`` on CPU devices and ``"vmap"`` on accelerators. Why: on a
-CPU a vmapped episode loop runs until its longest member ends and the batched index and fit
-kernels cost about as much per seed as one seed's, so vmapped seeds add no throughput, while
-``map`` keeps every seed at the single-seed rate and the devices run side by side.
+Within a device the members run either vmapped (``per_device="vmap"``: one batched program,
+what a GPU wants) or one after another (``"map"``: ``lax.map``, the single-member program in
+a loop). ``"auto"`` (default) picks ``"map"`` on CPU devices and ``"vmap"`` on accelerators.
+Why: on a CPU a vmapped episode loop runs until its longest member ends and the batched index
+and fit kernels cost about as much per member as one member's, so vmapped members add no
+throughput, while ``map`` keeps every member at the single-member rate and the devices run
+side by side.
 
-Every output leaf keeps the leading seed axis and stays sharded over the devices (call
-``jax.device_get`` to gather). The number of seeds need not divide the device count: the keys
-are padded by repeating the last one and the padding is cut from the outputs. A seed's result
-does not depend on the device it ran on or on how many others shared it (``"map"``: the
-single-seed program; ``"vmap"``: as ``jax.vmap(train_fn)``). On a CPU, split it into N
-devices with ``hedger_jax.cpu.configure(host_devices=N)`` before JAX starts.
+The member count need not divide the device count: the inputs are padded by repeating the
+last member and the padding is cut from the outputs. A member's result does not depend on
+the device it ran on or on how many others shared it (``"map"``: the single-member program;
+``"vmap"``: as ``jax.vmap(train_fn)``). On a CPU, split it into N devices with
+``hedger_jax.cpu.configure(host_devices=N)`` before JAX starts; across machines, join the
+processes first with ``hedger_jax.distributed.initialize()`` (docs/scaling.md).
 """
 from __future__ import annotations
 
@@ -91,41 +92,97 @@ def _compiled(train_fn: Callable, mesh: Mesh, mode: str):
     return fn, sharding
 
 
-def sharded_train(train_fn: Callable, devices: Optional[Sequence[Any]] = None,
-                  per_device: str = "auto"):
-    """``keys -> outputs``: ``train_fn`` over the seed axis of keys, split across ``devices``
-    (see ``shard_seeds``). The number of seeds must be a multiple of the number of devices
-    (``shard_seeds`` pads)."""
+@functools.lru_cache(maxsize=32)
+def _with_typed_keys(train_fn: Callable, impl: Any) -> Callable:
+    """``train_fn`` taking raw key data of ``impl`` instead of typed keys (host-side arrays of
+    typed keys cannot cross processes)."""
+    return lambda data, *args: train_fn(jax.random.wrap_key_data(data, impl=impl), *args)
+
+
+def global_put(tree: Any, sharding: NamedSharding) -> Any:
+    """Host arrays, equal on every process, as arrays split by ``sharding``: across processes
+    each process places only its own devices' slices (no data crosses the network)."""
+    if jax.process_count() == 1:
+        return jax.device_put(tree, sharding)
+
+    def put(x):
+        x = np.asarray(x)
+        return jax.make_array_from_callback(x.shape, sharding, lambda index: x[index])
+
+    return jax.tree_util.tree_map(put, tree)
+
+
+def gather(tree: Any) -> Any:
+    """Every leaf whole, as NumPy arrays, on every process (across processes: an all-gather)."""
+    if jax.process_count() == 1:
+        return jax.device_get(tree)
+    from jax.experimental import multihost_utils
+
+    return multihost_utils.process_allgather(tree, tiled=True)
+
+
+def _pad_members(tree: Any, n: int, to: int) -> Any:
+    """Each leaf's leading member axis, n long, padded to ``to`` by repeating the last member."""
+    if to == n:
+        return tree
+    return jax.tree_util.tree_map(
+        lambda x: np.concatenate([x, np.repeat(x[-1:], to - n, axis=0)]), tree)
+
+
+def sweep(train_fn: Callable, keys: Any, params: Any = None, *,
+          devices: Optional[Sequence[Any]] = None, per_device: str = "auto") -> Any:
+    """Run ``train_fn`` for every member of a sweep, the fast way for the devices there are.
+
+    train_fn: ``key -> outputs``, or ``(key, params) -> outputs`` when ``params`` is given
+    (e.g. ``make_train(...).train`` with a ``HedgerParams`` of per-member settings).
+    keys: (members, ...) raw or typed PRNG keys. params: a pytree whose every leaf has the
+    leading member axis, or None. devices: default every device of every process.
+
+    The members are split over the devices (a 1-D mesh ``"seeds"``; padded to a multiple of
+    the device count by repeating the last member); each device runs its share one after
+    another on a CPU (``per_device="map"``: each member is the single-member program, so its
+    numbers do not depend on the split) and vmapped on an accelerator ("vmap"), "auto"
+    choosing. On a CPU, split it into one device per core first with
+    ``hedger_jax.cpu.configure(host_devices=N)``; across processes (``hedger_jax.distributed``)
+    every process calls ``sweep`` with the same arguments and runs its own devices' members.
+
+    Returns the outputs, leading axis ``members``: in one process JAX arrays sharded over the
+    devices; across processes NumPy arrays, gathered to every process. One compile per
+    (train_fn, devices, mode, members).
+    """
     mesh = seed_mesh(devices)
-    mode = resolve_per_device(per_device, mesh)
-    fn, sharding = _compiled(train_fn, mesh, mode)
-
-    def run(keys):
-        return fn(jax.device_put(keys, sharding))
-
-    return run
+    n_dev = mesh.devices.size
+    if not isinstance(keys, jax.Array):
+        keys = jnp.asarray(keys)
+    if keys.ndim < 1 or keys.shape[0] < 1:
+        raise ValueError(f"keys: need a leading member axis with at least one member, got "
+                         f"shape {keys.shape}")
+    n = keys.shape[0]
+    fn = train_fn
+    if jax.dtypes.issubdtype(keys.dtype, jax.dtypes.prng_key):
+        fn = _with_typed_keys(train_fn, jax.random.key_impl(keys))
+        keys = jax.random.key_data(keys)
+    args = (np.asarray(keys),)
+    if params is not None:
+        for path, leaf in jax.tree_util.tree_flatten_with_path(params)[0]:
+            shape = np.shape(leaf)
+            if not shape or shape[0] != n:
+                raise ValueError(f"params{jax.tree_util.keystr(path)}: every leaf needs the "
+                                 f"leading member axis of length {n} (as the keys), got "
+                                 f"shape {shape}")
+        args += (jax.tree_util.tree_map(np.asarray, params),)
+    padded = _pad_members(args, n, n + (-n) % n_dev)
+    program, sharding = _compiled(fn, mesh, resolve_per_device(per_device, mesh))
+    out = program(*global_put(padded, sharding))
+    if jax.process_count() > 1:
+        out = gather(out)
+    if padded is not args:
+        out = jax.tree_util.tree_map(lambda x: x[:n], out)
+    return out
 
 
 def shard_seeds(train_fn: Callable, keys: jax.Array, devices: Optional[Sequence[Any]] = None,
                 per_device: str = "auto"):
-    """Run ``train_fn`` for every key, the seeds split across ``devices``.
-
-    train_fn: key -> pytree (e.g. ``make_train(...).train``); keys: (n_seeds, ...) raw or typed
-    PRNG keys. per_device: "auto" | "map" | "vmap" (module doc). Returns the outputs with
-    leading axis n_seeds, sharded over the devices. Compiles once per (train_fn, devices,
-    mode, n_seeds).
-    """
-    mesh = seed_mesh(devices)
-    n_dev = mesh.devices.size
-    keys = jnp.asarray(keys) if not isinstance(keys, jax.Array) else keys
-    if keys.ndim < 1 or keys.shape[0] < 1:
-        raise ValueError(f"keys: need a leading seed axis with at least one seed, got shape "
-                         f"{keys.shape}")
-    n = keys.shape[0]
-    pad = (-n) % n_dev
-    if pad:
-        keys = jnp.concatenate([keys, jnp.repeat(keys[-1:], pad, axis=0)])
-    out = sharded_train(train_fn, list(mesh.devices.flat), per_device)(keys)
-    if pad:
-        out = jax.tree_util.tree_map(lambda x: x[:n], out)
-    return out
+    """``sweep(train_fn, keys, devices=devices, per_device=per_device)``: ``train_fn`` (key ->
+    pytree) for every key, the seeds split across the devices."""
+    return sweep(train_fn, keys, devices=devices, per_device=per_device)

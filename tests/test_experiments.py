@@ -202,9 +202,10 @@ def test_corrupt_checkpoint_is_not_trusted(tmp_path):
     with pytest.raises(KeyboardInterrupt):
         runner.run_variant(TINY, [0, 1], out, progress=False,
                            on_block=lambda b: (_ for _ in ()).throw(KeyboardInterrupt()))
-    ckpts = [p for p in os.listdir(os.path.join(out, "cache")) if p.startswith("ckpt-")]
-    assert len(ckpts) == 1
-    path = os.path.join(out, "cache", ckpts[0])
+    ckpts = sorted(p for p in os.listdir(os.path.join(out, "cache")) if p.startswith("ckpt-"))
+    # One file per member (seed), after block 1; block 0's were dropped once block 1's existed.
+    assert [p.split("-", 2)[2] for p in ckpts] == ["m0-b1.npz", "m1-b1.npz"]
+    path = os.path.join(out, "cache", ckpts[1])
     data = open(path, "rb").read()
     open(path, "wb").write(data[: len(data) // 2])
     blocks = []

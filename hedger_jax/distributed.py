@@ -1,0 +1,208 @@
+"""Sweeps over several processes: JAX's multi-controller runtime, set up only when asked.
+
+Several processes (one per cluster node or GPU, or several on one machine) join one JAX
+runtime with ``initialize()``; ``jax.devices()`` then lists every process's devices and
+``hedger_jax.sweep`` splits its members over all of them. Nothing here runs on import.
+
+Where the processes learn who they are, first match wins:
+
+1. arguments to ``initialize(coordinator, num_processes, process_id)``;
+2. this module's environment variables (``launch_local`` sets them): ``JAX_COORDINATOR_ADDRESS``
+   (JAX's own), ``HEDGER_JAX_NUM_PROCESSES``, ``HEDGER_JAX_PROCESS_ID``;
+3. JAX's cluster detection (SLURM, Open MPI, Kubernetes, Cloud TPU).
+
+A process that dies stops sending heartbeats; after ``heartbeat_timeout_s`` JAX's coordination
+service ends every other process with "The following tasks are unhealthy (stopped sending
+heartbeats)", naming the dead one, instead of leaving them waiting in a collective.
+``launch_local`` then raises ``ProcessFailedError`` naming the first process that failed.
+
+    python -m hedger_jax.launch -n 2 -- python -m experiments fig2 --quick
+"""
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import time
+from typing import Dict, List, Optional, Sequence, Tuple
+
+ENV_COORDINATOR = "JAX_COORDINATOR_ADDRESS"
+ENV_NUM_PROCESSES = "HEDGER_JAX_NUM_PROCESSES"
+ENV_PROCESS_ID = "HEDGER_JAX_PROCESS_ID"
+#: How many of the job's processes share this machine (``local_cores`` divides by it).
+ENV_LOCAL_PROCESSES = "HEDGER_JAX_LOCAL_PROCESSES"
+
+#: Seconds without heartbeats after which the others are ended (JAX's default is 100).
+HEARTBEAT_TIMEOUT_S = 30
+
+
+class ProcessFailedError(RuntimeError):
+    """A process of a multi-process job exited with an error or was killed."""
+
+
+def _env_int(name: str, environ) -> Optional[int]:
+    text = environ.get(name)
+    if text in (None, ""):
+        return None
+    try:
+        return int(text)
+    except ValueError:
+        raise ValueError(f"{name}={text!r}: expected an integer") from None
+
+
+def detected_cluster(environ=None) -> Optional[Tuple[str, int]]:
+    """(name, process count) of the multi-process job this environment describes, or None:
+    this module's variables (name "hedger_jax"), else a cluster JAX's ``initialize()``
+    detects by itself (SLURM, Open MPI, ...) with more than one process. Imports no
+    backend."""
+    env = os.environ if environ is None else environ
+    n = _env_int(ENV_NUM_PROCESSES, env)
+    if n is not None:
+        return ("hedger_jax", n) if n > 1 else None
+    if environ is not None:          # JAX's detectors read os.environ only
+        return None
+    try:                             # JAX's own detectors, so we agree with initialize()
+        from jax._src import clusters
+
+        for kind in clusters.ClusterEnv._cluster_types:
+            if getattr(kind, "opt_in_only_method", False) or not kind.is_env_present():
+                continue
+            count = kind.get_process_count()
+            return (kind.name, count) if count and count > 1 else None
+    except (ImportError, AttributeError):     # a JAX without them: SLURM by hand
+        if "SLURM_JOB_ID" in env and _env_int("SLURM_NTASKS", env) not in (None, 1):
+            return ("slurm", int(env["SLURM_NTASKS"]))
+    return None
+
+
+def is_initialized() -> bool:
+    """Whether ``jax.distributed.initialize`` has run in this process."""
+    from jax._src import distributed
+
+    return distributed.global_state.client is not None
+
+
+def initialize(coordinator: Optional[str] = None, num_processes: Optional[int] = None,
+               process_id: Optional[int] = None, *,
+               heartbeat_timeout_s: int = HEARTBEAT_TIMEOUT_S,
+               initialization_timeout_s: int = 300) -> Tuple[int, int]:
+    """Join this process to a multi-process JAX runtime; -> (process_id, num_processes).
+
+    coordinator: "host:port" of process 0's coordination service. Unset arguments come from
+    the environment (module doc). Call it before any JAX computation, and after
+    ``hedger_jax.cpu.configure`` if you use it. A second call returns the first's answer.
+    """
+    import jax
+
+    if is_initialized():
+        return jax.process_index(), jax.process_count()
+    env = os.environ
+    coordinator = coordinator or env.get(ENV_COORDINATOR) or None
+    num_processes = num_processes if num_processes is not None else _env_int(
+        ENV_NUM_PROCESSES, env)
+    process_id = process_id if process_id is not None else _env_int(ENV_PROCESS_ID, env)
+    if num_processes is not None and num_processes < 1:
+        raise ValueError(f"num_processes: must be >= 1, got {num_processes}")
+    if process_id is not None and num_processes is not None and not (
+            0 <= process_id < num_processes):
+        raise ValueError(f"process_id: must be in [0, {num_processes}), got {process_id}")
+    jax.distributed.initialize(coordinator, num_processes, process_id,
+                               heartbeat_timeout_seconds=int(heartbeat_timeout_s),
+                               initialization_timeout=int(initialization_timeout_s))
+    return jax.process_index(), jax.process_count()
+
+
+def local_cores(environ=None) -> int:
+    """CPU cores for this process: those it may run on, shared evenly among the job's
+    processes on this machine (``HEDGER_JAX_LOCAL_PROCESSES``, ``SLURM_NTASKS_PER_NODE``)."""
+    env = os.environ if environ is None else environ
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:            # not Linux
+        cores = os.cpu_count() or 1
+    sharing = _env_int(ENV_LOCAL_PROCESSES, env)
+    if sharing is None and "SLURM_NTASKS_PER_NODE" in env and "SLURM_CPUS_PER_TASK" not in env:
+        try:                         # e.g. "4" or "4(x2)"
+            sharing = int(env["SLURM_NTASKS_PER_NODE"].split("(")[0])
+        except ValueError:
+            sharing = None
+    return max(1, cores // max(1, sharing or 1))
+
+
+def free_port() -> int:
+    """A TCP port on localhost that nothing listens on now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("localhost", 0))
+        return s.getsockname()[1]
+
+
+def process_environments(n_processes: int, port: int, environ=None) -> List[Dict[str, str]]:
+    """The environment of each of ``n_processes`` local processes around a coordinator on
+    localhost:``port``."""
+    base = dict(os.environ if environ is None else environ)
+    return [dict(base, **{ENV_COORDINATOR: f"localhost:{port}",
+                          ENV_NUM_PROCESSES: str(n_processes), ENV_PROCESS_ID: str(i),
+                          ENV_LOCAL_PROCESSES: str(n_processes)})
+            for i in range(n_processes)]
+
+
+def launch_local(command: Sequence[str], n_processes: int, *, port: Optional[int] = None,
+                 log_dir: Optional[str] = None, timeout_s: Optional[float] = None,
+                 grace_s: float = HEARTBEAT_TIMEOUT_S + 15, environ=None) -> None:
+    """Run ``command`` as ``n_processes`` processes of one job on this machine, and wait.
+
+    Each gets the variables ``initialize()`` reads (process ids 0..n-1, a coordinator on
+    localhost). log_dir: each process's stdout and stderr go to ``log_dir/process-I.log``
+    (default: this process's). When one fails, the others get ``grace_s`` to end (JAX ends
+    them after its heartbeat timeout) and are then killed. Raises ``ProcessFailedError``
+    naming the first process that failed (or ``TimeoutError`` after ``timeout_s``).
+    """
+    if n_processes < 1:
+        raise ValueError(f"n_processes: must be >= 1, got {n_processes}")
+    if not command:
+        raise ValueError("command: empty")
+    envs = process_environments(n_processes, port or free_port(), environ)
+    logs, procs = [], []
+    try:
+        for i, env in enumerate(envs):
+            out = None
+            if log_dir is not None:
+                os.makedirs(log_dir, exist_ok=True)
+                out = open(os.path.join(log_dir, f"process-{i}.log"), "wb")
+                logs.append(out)
+            procs.append(subprocess.Popen(list(command), env=env, stdout=out,
+                                          stderr=subprocess.STDOUT if out else None))
+        _wait_all(procs, timeout_s, grace_s)
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+        for f in logs:
+            f.close()
+
+
+def _wait_all(procs: List[subprocess.Popen], timeout_s: Optional[float], grace_s: float):
+    """Wait for every process; raise on the first failure once the rest ended or the grace
+    time ran out."""
+    start = time.monotonic()
+    failed_at = failed = None
+    while True:
+        codes = [p.poll() for p in procs]
+        if failed is None:
+            bad = [i for i, c in enumerate(codes) if c not in (None, 0)]
+            if bad:
+                failed, failed_at = bad[0], time.monotonic()
+        if all(c is not None for c in codes):
+            break
+        now = time.monotonic()
+        if failed is not None and now - failed_at > grace_s:
+            break
+        if timeout_s is not None and now - start > timeout_s:
+            raise TimeoutError(f"launch_local: the processes ran past {timeout_s} s")
+        time.sleep(0.1)
+    if failed is not None:
+        code = procs[failed].returncode
+        how = f"was killed by signal {-code}" if code < 0 else f"exited with code {code}"
+        raise ProcessFailedError(f"process {failed} of {len(procs)} {how}")

@@ -1,0 +1,198 @@
+"""Sweeps over several processes (hedger_jax.distributed, hedger_jax.launch): real processes
+joined by JAX's multi-process runtime on localhost, against the same sweep in one process."""
+import json
+import os
+import random
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from hedger_jax import distributed
+from hedger_jax.distributed import ProcessFailedError, launch_local
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+JOB = os.path.join(ROOT, "tests", "distributed_job.py")
+RUNNER_JOB = os.path.join(ROOT, "tests", "distributed_runner_job.py")
+
+
+def _one_process(script, *args, host_devices=1):
+    """Run a job script as a plain process with ``host_devices`` CPU devices."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    if host_devices > 1:
+        flags += f" --xla_force_host_platform_device_count={host_devices}"
+    env = dict(os.environ, XLA_FLAGS=flags.strip(), JAX_PLATFORMS="cpu")
+    for name in (distributed.ENV_NUM_PROCESSES, distributed.ENV_PROCESS_ID):
+        env.pop(name, None)
+    proc = subprocess.run([sys.executable, script, *args], env=env, cwd=ROOT,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
+    return proc.stdout
+
+
+def _launch(n, script, *args, log_dir):
+    try:
+        launch_local([sys.executable, script, *args], n, log_dir=str(log_dir), timeout_s=300)
+    except ProcessFailedError:
+        logs = "".join(p.read_text()[-3000:] for p in sorted(log_dir.iterdir()))
+        raise AssertionError(logs)
+
+
+def _load(path):
+    with np.load(path) as z:
+        return {k: z[k] for k in z.files}
+
+
+def test_sweep_over_two_processes_equals_one_process(tmp_path):
+    """hj.sweep: 2 processes x 1 device give bit-identical members to 1 process x 2 devices
+    and to 1 process x 1 device (each member is the single-member program)."""
+    _launch(2, JOB, str(tmp_path / "two.npz"), log_dir=tmp_path / "logs")
+    _one_process(JOB, str(tmp_path / "one_x2.npz"), host_devices=2)
+    _one_process(JOB, str(tmp_path / "one_x1.npz"))
+    two, one2, one1 = (_load(tmp_path / f"{n}.npz") for n in ("two", "one_x2", "one_x1"))
+    assert (int(two["processes"]), int(two["devices"])) == (2, 2)
+    assert (int(one2["processes"]), int(one2["devices"])) == (1, 2)
+    for name in ("value", "known", "n"):
+        assert two[name].shape == (6, 8)
+        np.testing.assert_array_equal(two[name], one2[name], name)
+        np.testing.assert_array_equal(two[name], one1[name], name)
+    # The members really differ: a wider bandwidth selects more neighbours.
+    assert two["n"][4].mean() > two["n"][0].mean()
+
+
+def _record(out_dir):
+    cache = os.path.join(out_dir, "cache")
+    records = [f for f in os.listdir(cache) if len(f) == 21 and f.endswith(".json")]
+    assert len(records) == 1, os.listdir(cache)
+    with open(os.path.join(cache, records[0])) as f:
+        return json.load(f)
+
+
+def test_runner_resumes_with_another_process_count(tmp_path):
+    """The experiments runner over 2 processes: the same per-member numbers as 1 process
+    (seed mode map); a run stopped after block 2 on 2 processes resumes on 1 from every
+    member's checkpoint; only process 0 writes results, and no checkpoint is left."""
+    _launch(2, RUNNER_JOB, str(tmp_path / "two"), log_dir=tmp_path / "logs_two")
+    _launch(2, RUNNER_JOB, str(tmp_path / "resumed"), "--stop-after", "2",
+            log_dir=tmp_path / "logs_stop")
+    ckpts = sorted(f.split("-", 2)[2] for f in os.listdir(tmp_path / "resumed" / "cache")
+                   if f.startswith("ckpt-"))
+    assert ckpts == ["m0-b2.npz", "m1-b2.npz", "m2-b2.npz"]   # each member, block 2
+    out = _one_process(RUNNER_JOB, str(tmp_path / "resumed"))
+    assert out.startswith("done 1 1")
+    _one_process(RUNNER_JOB, str(tmp_path / "one"))
+    one, two, resumed = (_record(tmp_path / n) for n in ("one", "two", "resumed"))
+    for name in ("mean_steps", "points", "episodes", "success_rate", "memory_size"):
+        assert np.asarray(one[name]).shape[:2] == (3, 4)
+        np.testing.assert_array_equal(np.asarray(two[name]), np.asarray(one[name]), name)
+        np.testing.assert_array_equal(np.asarray(resumed[name]), np.asarray(one[name]), name)
+    for name in ("two", "resumed"):
+        assert not [f for f in os.listdir(tmp_path / name / "cache") if f.startswith("ckpt-")]
+    # Both processes computed; process 1 only printed.
+    for log in ("process-0.log", "process-1.log"):
+        assert "done 2 2" in (tmp_path / "logs_two" / log).read_text()
+
+
+def test_killed_process_ends_the_others_with_a_named_error(tmp_path):
+    """Process 1 is killed after joining: process 0 is ended by JAX's heartbeat check (5 s in
+    the job) naming the dead process, and the launcher names it too, instead of hanging."""
+    start = time.monotonic()
+    with pytest.raises(ProcessFailedError, match="process 1 of 2 was killed by signal 9"):
+        launch_local([sys.executable, JOB, str(tmp_path / "x.npz"), "--die-after", "1"], 2,
+                     log_dir=str(tmp_path / "logs"), timeout_s=120, grace_s=60)
+    elapsed = time.monotonic() - start
+    log0 = (tmp_path / "logs" / "process-0.log").read_text()
+    assert "stopped sending heartbeats" in log0, log0[-3000:]
+    assert elapsed < 60, elapsed           # heartbeat timeout 5 s, not the job's 120 s sleep
+    assert not (tmp_path / "x.npz").exists()
+
+
+def test_slurm_environment_is_detected_without_flags(tmp_path):
+    """With SLURM's variables (2 tasks on localhost) and no arguments, the processes find each
+    other through JAX's own cluster detection, as under srun."""
+    job_id = random.randrange(10_000, 1_000_000)
+    procs = []
+    env_base = {k: v for k, v in os.environ.items()
+                if k not in (distributed.ENV_NUM_PROCESSES, distributed.ENV_PROCESS_ID,
+                             distributed.ENV_COORDINATOR)}
+    for i in range(2):
+        env = dict(env_base, SLURM_JOB_ID=str(job_id), SLURM_STEP_NODELIST="localhost",
+                   SLURM_NTASKS="2", SLURM_PROCID=str(i), SLURM_LOCALID=str(i),
+                   JAX_PLATFORMS="cpu")
+        log = open(tmp_path / f"p{i}.log", "wb")
+        procs.append((subprocess.Popen([sys.executable, JOB, str(tmp_path / "slurm.npz")],
+                                       env=env, cwd=ROOT, stdout=log,
+                                       stderr=subprocess.STDOUT), log))
+    for p, log in procs:
+        code = p.wait(timeout=300)
+        log.close()
+        assert code == 0, (tmp_path / "p0.log").read_text()[-3000:]
+    got = _load(tmp_path / "slurm.npz")
+    assert (int(got["processes"]), int(got["devices"])) == (2, 2)
+
+
+def test_detected_cluster_reads_the_environment(monkeypatch):
+    for name in ("SLURM_JOB_ID", distributed.ENV_NUM_PROCESSES, "OMPI_MCA_orte_hnp_uri",
+                 "OMPI_MCA_ess_base_jobid", "PMIX_NAMESPACE"):
+        monkeypatch.delenv(name, raising=False)
+    assert distributed.detected_cluster() is None
+    monkeypatch.setenv(distributed.ENV_NUM_PROCESSES, "3")
+    assert distributed.detected_cluster() == ("hedger_jax", 3)
+    monkeypatch.setenv(distributed.ENV_NUM_PROCESSES, "1")
+    assert distributed.detected_cluster() is None          # one process: a plain run
+    monkeypatch.setenv(distributed.ENV_NUM_PROCESSES, "two")
+    with pytest.raises(ValueError, match="HEDGER_JAX_NUM_PROCESSES"):
+        distributed.detected_cluster()
+    monkeypatch.delenv(distributed.ENV_NUM_PROCESSES)
+    for name, value in (("SLURM_JOB_ID", "7"), ("SLURM_STEP_NODELIST", "node[01-02]"),
+                        ("SLURM_NTASKS", "4"), ("SLURM_PROCID", "1"), ("SLURM_LOCALID", "1")):
+        monkeypatch.setenv(name, value)
+    assert distributed.detected_cluster() == ("slurm", 4)
+    monkeypatch.setenv("SLURM_NTASKS", "1")
+    assert distributed.detected_cluster() is None
+
+
+def test_local_cores_are_shared_among_local_processes():
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:
+        cores = os.cpu_count()
+    assert distributed.local_cores({}) == cores
+    assert distributed.local_cores({distributed.ENV_LOCAL_PROCESSES: "2"}) == max(1, cores // 2)
+    assert distributed.local_cores({distributed.ENV_LOCAL_PROCESSES: str(10 * cores)}) == 1
+    envs = distributed.process_environments(3, 1234, environ={"A": "1"})
+    assert [e[distributed.ENV_PROCESS_ID] for e in envs] == ["0", "1", "2"]
+    assert all(e[distributed.ENV_COORDINATOR] == "localhost:1234" and e["A"] == "1"
+               for e in envs)
+
+
+def test_bad_arguments_are_named(capsys):
+    with pytest.raises(ValueError, match="n_processes"):
+        launch_local([sys.executable, "-c", "pass"], 0)
+    with pytest.raises(ValueError, match="command"):
+        launch_local([], 2)
+    with pytest.raises(ValueError, match="process_id"):
+        distributed.initialize("localhost:1", 2, 5)
+    from hedger_jax.launch import main as launch_main
+
+    with pytest.raises(SystemExit):
+        launch_main(["-n", "2"])                      # no command
+    from experiments.__main__ import main as cli
+
+    for argv, message in ((["fig2", "--processes", "2"], "--process-id"),
+                          (["fig2", "--processes", "2", "--process-id", "2", "--coordinator",
+                            "localhost:1"], "0..1"),
+                          (["fig2", "--process-id", "0"], "--processes N")):
+        with pytest.raises(SystemExit):
+            cli(argv)
+        assert message in capsys.readouterr().err
+
+
+def test_launcher_reports_a_failing_command(tmp_path):
+    with pytest.raises(ProcessFailedError, match="process 0 of 2 exited with code 3"):
+        launch_local([sys.executable, "-c",
+                      "import os, sys; sys.exit(3 if os.environ['HEDGER_JAX_PROCESS_ID'] == '0'"
+                      " else 0)"], 2, log_dir=str(tmp_path), grace_s=5)
+    launch_local([sys.executable, "-c", "pass"], 2, log_dir=str(tmp_path))   # all succeed
