@@ -14,8 +14,9 @@ another (``lax.map``) on one host device per core, as the experiments CLI does o
   sweep cost before traced params), seeds mapped.
 
 Reports wall-clock seconds (trace + compile, run, total) of each arm, the per-value results
-of both (mean steps after the last block; they agree to float32 rounding), and writes
-``DIR/sweep.md`` and ``DIR/sweep.json``.
+of both (mean steps after the last block; they agree to float32 rounding), and the wall time
+of the README's sweep block run as it stands in a fresh process (the time the README states
+beside it), and writes ``DIR/sweep.md`` and ``DIR/sweep.json``.
 """
 from __future__ import annotations
 
@@ -27,6 +28,38 @@ import sys
 import time
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+
+#: The line above the README's sweep block (the line between is its test-tier mark).
+README_MARK = "<!-- sweep-snippet: timed by benchmarks/sweep.py -->"
+
+
+def readme_snippet() -> str:
+    """The README's sweep block, as a user would copy it."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    with open(os.path.join(root, "README.md"), encoding="utf-8") as f:
+        text = f.read()
+    start = text.index("```python\n", text.index(README_MARK)) + len("```python\n")
+    return text[start:text.index("```", start)]
+
+
+def readme_snippet_seconds(environ: dict) -> dict:
+    """Wall seconds of the README's sweep block in a fresh Python process (start to exit), in
+    an empty folder, with ``environ`` (the environment before this script set its XLA flags:
+    the block sets its own) and the repository on the path."""
+    import subprocess
+    import tempfile
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = dict(environ, PYTHONPATH=root + os.pathsep + environ.get("PYTHONPATH", ""))
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        proc = subprocess.run([sys.executable, "-c", readme_snippet()], cwd=tmp, env=env,
+                              capture_output=True, text=True)
+        wall = time.perf_counter() - t0
+    if proc.returncode != 0:
+        raise RuntimeError(f"the README sweep block failed:\n{proc.stderr[-3000:]}")
+    return {"wall_s": wall, "output": proc.stdout.strip()}
 
 
 def main(argv=None):
@@ -43,6 +76,7 @@ def main(argv=None):
     from hedger_jax import cpu
 
     n_dev = max(1, os.cpu_count() or 1)
+    user_env = dict(os.environ)
     cpu.configure(host_devices=n_dev if n_dev > 1 else None)
     import jax
     import jax.numpy as jnp
@@ -101,7 +135,9 @@ def main(argv=None):
         per["final"].append(float(final_steps(res).mean()))
         print("value", h, c, r, flush=True)
     per["total_s"] = time.perf_counter() - t_start
-    rows = {"one_program": one, "per_value": per}
+    readme = readme_snippet_seconds(user_env)
+    print("README snippet", readme, flush=True)
+    rows = {"one_program": one, "per_value": per, "readme_snippet": readme}
     meta = {"index": args.index, "machine": f"{os.cpu_count()} CPU cores, {platform.processor() or platform.machine()}"
                        f", {platform.platform()}", "jax": jax.__version__,
             "devices": len(jax.devices()), "values": values, "seeds": S,
@@ -120,6 +156,8 @@ def main(argv=None):
              f"{per['total_s']:.1f} |", "",
              f"One program is **{speedup:.2f}x** faster end to end; its compile is "
              f"**{compile_ratio:.2f}x** a single-setting compile.", "",
+             f"The README's sweep block, run as it stands in a fresh process: "
+             f"**{readme['wall_s']:.1f} s** from start to exit.", "",
              "| bandwidth | mean steps after 200 runs, one program | one compile per value |",
              "|---|---|---|"]
     lines += [f"| {h} | {a:.1f} | {b:.1f} |" for h, a, b in zip(values, one["final"], per["final"])]

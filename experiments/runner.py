@@ -427,10 +427,9 @@ def _check_memories(state) -> None:
 
 def _barrier(name: str) -> None:
     """Wait for every process (a no-op in one process)."""
-    if jax.process_count() > 1:
-        from jax.experimental import multihost_utils
+    from hedger_jax.distributed import barrier
 
-        multihost_utils.sync_global_devices(name)
+    barrier(name)
 
 
 def _as_process_zero(flags: List[bool]) -> List[bool]:
@@ -439,6 +438,7 @@ def _as_process_zero(flags: List[bool]) -> List[bool]:
         return list(flags)
     from jax.experimental import multihost_utils
 
+    _barrier("broadcast")
     return [bool(f) for f in multihost_utils.broadcast_one_to_all(np.asarray(flags, bool))]
 
 
@@ -446,9 +446,7 @@ def _agree(value: int) -> int:
     """The smallest of every process's ``value`` (so that all take the same branch)."""
     if jax.process_count() == 1:
         return value
-    from jax.experimental import multihost_utils
-
-    return int(np.min(multihost_utils.process_allgather(np.int32(value))))
+    return int(np.min(gather(np.array([value], np.int32))))
 
 
 def _remove_checkpoints(cache_dir: str, batch_key: str, members=None, blocks=None) -> None:

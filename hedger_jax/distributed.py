@@ -20,6 +20,7 @@ heartbeats)", naming the dead one, instead of leaving them waiting in a collecti
 """
 from __future__ import annotations
 
+import itertools
 import os
 import socket
 import subprocess
@@ -35,6 +36,11 @@ ENV_LOCAL_PROCESSES = "HEDGER_JAX_LOCAL_PROCESSES"
 
 #: Seconds without heartbeats after which the others are ended (JAX's default is 100).
 HEARTBEAT_TIMEOUT_S = 30
+#: How long a process waits at a barrier for the slowest one (a dead one is caught by the
+#: heartbeats long before): a week.
+BARRIER_TIMEOUT_S = 7 * 24 * 3600
+
+_barriers = itertools.count()
 
 
 class ProcessFailedError(RuntimeError):
@@ -90,8 +96,8 @@ def initialize(coordinator: Optional[str] = None, num_processes: Optional[int] =
     """Join this process to a multi-process JAX runtime; -> (process_id, num_processes).
 
     coordinator: "host:port" of process 0's coordination service. Unset arguments come from
-    the environment (module doc). Call it before any JAX computation, and after
-    ``hedger_jax.cpu.configure`` if you use it. A second call returns the first's answer.
+    the environment (module doc). Call it before any JAX computation, and after ``hedger_jax.cpu.configure`` if
+    you use it. A second call returns the first's answer.
     """
     import jax
 
@@ -111,6 +117,24 @@ def initialize(coordinator: Optional[str] = None, num_processes: Optional[int] =
                                heartbeat_timeout_seconds=int(heartbeat_timeout_s),
                                initialization_timeout=int(initialization_timeout_s))
     return jax.process_index(), jax.process_count()
+
+
+def barrier(name: str, timeout_s: float = BARRIER_TIMEOUT_S) -> None:
+    """Wait until every process of the job has reached this barrier (a no-op in one process).
+
+    Collectives between processes (gathers) give up when the others are 30 s late to set up
+    their connections, so every cross-process collective here is preceded by this barrier,
+    which waits on the coordination service for as long as the slowest process's share
+    takes. Every process must pass the same barriers in the same order.
+    """
+    import jax
+
+    if jax.process_count() == 1:
+        return
+    from jax._src import distributed as jax_distributed
+
+    jax_distributed.global_state.client.wait_at_barrier(
+        f"hedger_jax/{name}/{next(_barriers)}", int(timeout_s * 1000))
 
 
 def local_cores(environ=None) -> int:

@@ -118,6 +118,9 @@ def gather(tree: Any) -> Any:
         return jax.device_get(tree)
     from jax.experimental import multihost_utils
 
+    from hedger_jax.distributed import barrier
+
+    barrier("gather")             # the processes finish their shares at different times
     return multihost_utils.process_allgather(tree, tiled=True)
 
 

@@ -62,6 +62,16 @@ def test_sweep_over_two_processes_equals_one_process(tmp_path):
     assert two["n"][4].mean() > two["n"][0].mean()
 
 
+@pytest.mark.full   # ~50 s, mostly waiting
+def test_a_late_process_is_waited_for(tmp_path):
+    """Process 1 starts its share 40 s late, past the 30 s that a cross-process gather waits
+    for its peers to connect: the barrier before the gather waits for it instead."""
+    _launch(2, JOB, str(tmp_path / "late.npz"), "--late", "40", log_dir=tmp_path / "logs")
+    _one_process(JOB, str(tmp_path / "one.npz"))
+    late, one = _load(tmp_path / "late.npz"), _load(tmp_path / "one.npz")
+    np.testing.assert_array_equal(late["value"], one["value"])
+
+
 def _record(out_dir):
     cache = os.path.join(out_dir, "cache")
     records = [f for f in os.listdir(cache) if len(f) == 21 and f.endswith(".json")]
