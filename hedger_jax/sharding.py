@@ -132,6 +132,14 @@ def _pad_members(tree: Any, n: int, to: int) -> Any:
         lambda x: np.concatenate([x, np.repeat(x[-1:], to - n, axis=0)]), tree)
 
 
+def member_order(total: int, n_devices: int) -> np.ndarray:
+    """(total,) the member at each position of a sweep's device-split axis, so that device d
+    runs members d, d + n_devices, ...: neighbouring members (often one setting's seeds, of
+    equal cost) are spread over the devices, which then finish together. total must be a
+    multiple of n_devices."""
+    return np.arange(total).reshape(total // n_devices, n_devices).T.reshape(-1)
+
+
 def sweep(train_fn: Callable, keys: Any, params: Any = None, *,
           devices: Optional[Sequence[Any]] = None, per_device: str = "auto") -> Any:
     """Run ``train_fn`` for every member of a sweep, the fast way for the devices there are.
@@ -141,9 +149,9 @@ def sweep(train_fn: Callable, keys: Any, params: Any = None, *,
     keys: (members, ...) raw or typed PRNG keys. params: a pytree whose every leaf has the
     leading member axis, or None. devices: default every device of every process.
 
-    The members are split over the devices (a 1-D mesh ``"seeds"``; padded to a multiple of
-    the device count by repeating the last member); each device runs its share one after
-    another on a CPU (``per_device="map"``: each member is the single-member program, so its
+    The members are dealt to the devices in turn (a 1-D mesh ``"seeds"``; padded to a
+    multiple of the device count by repeating the last member); each device runs its share
+    one after another on a CPU (``per_device="map"``: each member is the single-member program, so its
     numbers do not depend on the split) and vmapped on an accelerator ("vmap"), "auto"
     choosing. On a CPU, split it into one device per core first with
     ``hedger_jax.cpu.configure(host_devices=N)``; across processes (``hedger_jax.distributed``)
@@ -174,14 +182,21 @@ def sweep(train_fn: Callable, keys: Any, params: Any = None, *,
                                  f"leading member axis of length {n} (as the keys), got "
                                  f"shape {shape}")
         args += (jax.tree_util.tree_map(np.asarray, params),)
-    padded = _pad_members(args, n, n + (-n) % n_dev)
+    total = n + (-n) % n_dev
+    order = member_order(total, n_dev)
+    placed = jax.tree_util.tree_map(lambda x: x[order], _pad_members(args, n, total))
     program, sharding = _compiled(fn, mesh, resolve_per_device(per_device, mesh))
-    out = program(*global_put(padded, sharding))
+    out = program(*global_put(placed, sharding))
+    back = np.argsort(order)[:n]                 # each member's position in the outputs
     if jax.process_count() > 1:
-        out = gather(out)
-    if padded is not args:
-        out = jax.tree_util.tree_map(lambda x: x[:n], out)
-    return out
+        return jax.tree_util.tree_map(lambda x: x[back], gather(out))
+    return _take_members(out, back)
+
+
+@_jit
+def _take_members(tree: Any, index: jax.Array) -> Any:
+    """Every leaf's rows ``index`` (the members back in their order, padding dropped)."""
+    return jax.tree_util.tree_map(lambda x: x[index], tree)
 
 
 def shard_seeds(train_fn: Callable, keys: jax.Array, devices: Optional[Sequence[Any]] = None,

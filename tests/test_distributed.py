@@ -32,9 +32,10 @@ def _one_process(script, *args, host_devices=1):
     return proc.stdout
 
 
-def _launch(n, script, *args, log_dir):
+def _launch(n, *args, log_dir, timeout_s=300):
+    """``python *args`` as n processes of one job; AssertionError with their logs on failure."""
     try:
-        launch_local([sys.executable, script, *args], n, log_dir=str(log_dir), timeout_s=300)
+        launch_local([sys.executable, *args], n, log_dir=str(log_dir), timeout_s=timeout_s)
     except ProcessFailedError:
         logs = "".join(p.read_text()[-3000:] for p in sorted(log_dir.iterdir()))
         raise AssertionError(logs)
@@ -206,3 +207,40 @@ def test_launcher_reports_a_failing_command(tmp_path):
                       "import os, sys; sys.exit(3 if os.environ['HEDGER_JAX_PROCESS_ID'] == '0'"
                       " else 0)"], 2, log_dir=str(tmp_path), grace_s=5)
     launch_local([sys.executable, "-c", "pass"], 2, log_dir=str(tmp_path))   # all succeed
+
+
+def _fig2_curves(out_dir):
+    with open(os.path.join(out_dir, "fig2.json")) as f:
+        data = json.load(f)
+    return {v["label"]: np.asarray(v["mean_steps"]) for v in data["variants"]}
+
+
+@pytest.mark.full   # ~4 min: three Figure-2 quick runs of 2 seeds
+def test_cli_over_two_processes_equals_one_process_map(tmp_path):
+    """python -m experiments fig2 on 2 processes, with explicit flags and through the
+    launcher (found from the environment), gives every seed's curve bit for bit as one
+    process with --seed-mode map; only process 0 writes the figure."""
+    common = ["-m", "experiments", "fig2", "--quick", "--seeds", "2", "--eval-episodes", "20"]
+    port = distributed.free_port()
+    env = {k: v for k, v in os.environ.items()
+           if k not in (distributed.ENV_NUM_PROCESSES, distributed.ENV_PROCESS_ID)}
+    procs = [subprocess.Popen([sys.executable, *common, "--out", str(tmp_path / "flags"),
+                               "--processes", "2", "--process-id", str(i), "--coordinator",
+                               f"localhost:{port}"], cwd=ROOT, env=env,
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+             for i in range(2)]
+    outs = [p.communicate(timeout=900)[0].decode() for p in procs]
+    assert all(p.returncode == 0 for p in procs), outs[0][-3000:] + outs[1][-3000:]
+    assert "wrote" in outs[0] and "wrote" not in outs[1]      # only process 0 writes
+    _launch(2, *common, "--out", str(tmp_path / "launched"), log_dir=tmp_path / "logs",
+            timeout_s=900)
+    one = subprocess.run([sys.executable, *common, "--out", str(tmp_path / "one"),
+                          "--seed-mode", "map", "--devices", "1"], cwd=ROOT, env=env,
+                         capture_output=True, text=True, timeout=900)
+    assert one.returncode == 0, one.stderr[-3000:]
+    ref = _fig2_curves(tmp_path / "one")
+    for name in ("flags", "launched"):
+        got = _fig2_curves(tmp_path / name)
+        assert got.keys() == ref.keys()
+        for label in ref:
+            np.testing.assert_array_equal(got[label], ref[label], f"{name}: {label}")

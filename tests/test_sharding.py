@@ -108,3 +108,20 @@ def test_auto_mode_maps_on_cpu_devices():
     assert resolve_per_device("auto", mesh) == ("map" if jax.default_backend() == "cpu"
                                                  else "vmap")
     assert resolve_per_device("vmap", mesh) == "vmap"
+
+
+def test_sweep_deals_members_to_devices_and_checks_params():
+    from hedger_jax.sharding import member_order, sweep
+
+    # 6 members on 3 devices: device d runs members d and d + 3.
+    assert member_order(6, 3).tolist() == [0, 3, 1, 4, 2, 5]
+    assert member_order(4, 1).tolist() == [0, 1, 2, 3]
+    keys = jax.random.split(jax.random.PRNGKey(0), 3)
+    scale = {"a": jnp.array([1.0, 2.0, 3.0])}
+    out = sweep(lambda k, p: jax.random.normal(k, (2,)) * p["a"], keys, scale)
+    ref = jax.vmap(lambda k, p: jax.random.normal(k, (2,)) * p["a"])(keys, scale)
+    np.testing.assert_allclose(np.asarray(out), np.asarray(ref), rtol=1e-6)
+    with pytest.raises(ValueError, match=r"params\['a'\].*length 3"):
+        sweep(lambda k, p: p["a"], keys, {"a": jnp.ones(2)})
+    with pytest.raises(ValueError, match="leading member axis"):
+        sweep(lambda k, p: p["a"], keys, {"a": jnp.float32(1.0)})
