@@ -241,4 +241,4 @@ def join_processes(parser: argparse.ArgumentParser, args: argparse.Namespace) ->
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(distributed.exit_on_error(main)())

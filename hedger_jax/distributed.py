@@ -14,7 +14,11 @@ Where the processes learn who they are, first match wins:
 A process that dies stops sending heartbeats; after ``heartbeat_timeout_s`` JAX's coordination
 service ends every other process with "The following tasks are unhealthy (stopped sending
 heartbeats)", naming the dead one, instead of leaving them waiting in a collective.
+``exit_on_error`` makes a process that raises end at once, so that it counts as dead.
 ``launch_local`` then raises ``ProcessFailedError`` naming the first process that failed.
+
+Two helpers for programs that span the processes: ``barrier`` (wait for the slowest process
+before a collective) and ``compile_shared`` (process 0 compiles, the others load).
 
     python -m hedger_jax.launch -n 2 -- python -m experiments fig2 --quick
 """
@@ -26,7 +30,7 @@ import socket
 import subprocess
 import sys
 import time
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 ENV_COORDINATOR = "JAX_COORDINATOR_ADDRESS"
 ENV_NUM_PROCESSES = "HEDGER_JAX_NUM_PROCESSES"
@@ -137,6 +141,28 @@ def barrier(name: str, timeout_s: float = BARRIER_TIMEOUT_S) -> None:
         f"hedger_jax/{name}/{next(_barriers)}", int(timeout_s * 1000))
 
 
+def exit_on_error(main: Any) -> Any:
+    """``main`` (a function -> exit status) made to end its process at once on an uncaught
+    exception when several processes run: traceback printed, ``os._exit(1)``. Why: a process
+    that unwinds normally waits at JAX's shutdown barrier for the others (5 minutes), while
+    they wait for it; a process that is gone is noticed by the heartbeats within
+    ``HEARTBEAT_TIMEOUT_S``."""
+    def run(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return main(*args, **kwargs)
+        except BaseException:
+            if not is_initialized():
+                raise
+            import traceback
+
+            traceback.print_exc()
+            sys.stderr.flush()
+            sys.stdout.flush()
+            os._exit(1)
+
+    return run
+
+
 def local_cores(environ=None) -> int:
     """CPU cores for this process: those it may run on, shared evenly among the job's
     processes on this machine (``HEDGER_JAX_LOCAL_PROCESSES``, ``SLURM_NTASKS_PER_NODE``)."""
@@ -169,6 +195,43 @@ def process_environments(n_processes: int, port: int, environ=None) -> List[Dict
                           ENV_NUM_PROCESSES: str(n_processes), ENV_PROCESS_ID: str(i),
                           ENV_LOCAL_PROCESSES: str(n_processes)})
             for i in range(n_processes)]
+
+
+_shared_programs: Dict[Any, Any] = {}
+_program_ids = itertools.count()
+
+
+def compile_shared(jitted: Any, *args: Any) -> Any:
+    """``jitted.lower(*args).compile()`` for a program that spans every process, compiled once:
+    process 0 compiles it and hands the executable to the others through the coordination
+    service (they trace meanwhile, then load it in about a second). Why: processes that
+    compile the same program at once on one machine slow each other down (docs/scaling.md).
+    Cached per program and argument shapes; every process must call it in the same order."""
+    import jax
+    from jax._src import distributed as jax_distributed
+    from jax.experimental.serialize_executable import deserialize_and_load, serialize
+
+    key = (jitted, jax.tree_util.tree_structure(args),
+           tuple((x.shape, str(x.dtype)) for x in jax.tree_util.tree_leaves(args)))
+    if key in _shared_programs:
+        return _shared_programs[key]
+    client = jax_distributed.global_state.client
+    name = f"hedger_jax/program/{next(_program_ids)}"
+    lowered = jitted.lower(*args)
+    if jax.process_index() == 0:
+        compiled = lowered.compile()
+        client.key_value_set_bytes(name, serialize(compiled)[0])
+    else:
+        payload = client.blocking_key_value_get_bytes(name, BARRIER_TIMEOUT_S * 1000)
+        leaves = jax.tree_util.tree_leaves(args)
+        devices = list(leaves[0].sharding.mesh.devices.flat) if leaves else None
+        compiled = deserialize_and_load(payload, lowered.in_tree, lowered.out_tree,
+                                        execution_devices=devices)
+    barrier(f"loaded {name}")
+    if jax.process_index() == 0:
+        client.key_value_delete(name)
+    _shared_programs[key] = compiled
+    return compiled
 
 
 def launch_local(command: Sequence[str], n_processes: int, *, port: Optional[int] = None,

@@ -186,11 +186,14 @@ def sweep(train_fn: Callable, keys: Any, params: Any = None, *,
     order = member_order(total, n_dev)
     placed = jax.tree_util.tree_map(lambda x: x[order], _pad_members(args, n, total))
     program, sharding = _compiled(fn, mesh, resolve_per_device(per_device, mesh))
-    out = program(*global_put(placed, sharding))
+    placed = global_put(placed, sharding)
     back = np.argsort(order)[:n]                 # each member's position in the outputs
-    if jax.process_count() > 1:
-        return jax.tree_util.tree_map(lambda x: x[back], gather(out))
-    return _take_members(out, back)
+    if jax.process_count() == 1:
+        return _take_members(program(*placed), back)
+    from hedger_jax.distributed import compile_shared
+
+    program = compile_shared(program, *placed)    # compiled once, by process 0
+    return jax.tree_util.tree_map(lambda x: x[back], gather(program(*placed)))
 
 
 @_jit

@@ -120,6 +120,18 @@ def test_killed_process_ends_the_others_with_a_named_error(tmp_path):
     assert not (tmp_path / "x.npz").exists()
 
 
+def test_an_exception_in_one_process_ends_the_job(tmp_path):
+    """Process 1 raises: exit_on_error ends it at once (no wait at JAX's shutdown barrier),
+    and the heartbeat check ends process 0."""
+    start = time.monotonic()
+    with pytest.raises(ProcessFailedError, match="process 1 of 2 exited with code 1"):
+        launch_local([sys.executable, JOB, str(tmp_path / "x.npz"), "--raise-after", "1"], 2,
+                     log_dir=str(tmp_path / "logs"), timeout_s=120, grace_s=60)
+    assert time.monotonic() - start < 60
+    assert "a bug in process 1" in (tmp_path / "logs" / "process-1.log").read_text()
+    assert "stopped sending heartbeats" in (tmp_path / "logs" / "process-0.log").read_text()
+
+
 def test_slurm_environment_is_detected_without_flags(tmp_path):
     """With SLURM's variables (2 tasks on localhost) and no arguments, the processes find each
     other through JAX's own cluster detection, as under srun."""
