@@ -9,7 +9,8 @@ Where the processes learn who they are, first match wins:
 1. arguments to ``initialize(coordinator, num_processes, process_id)``;
 2. this module's environment variables (``launch_local`` sets them): ``JAX_COORDINATOR_ADDRESS``
    (JAX's own), ``HEDGER_JAX_NUM_PROCESSES``, ``HEDGER_JAX_PROCESS_ID``;
-3. JAX's cluster detection (SLURM, Open MPI, Kubernetes, Cloud TPU).
+3. JAX's cluster detection (SLURM, Open MPI, Kubernetes, Cloud TPU); ``detected_cluster``
+   recognises SLURM and Open MPI jobs (elsewhere, call ``initialize()`` yourself).
 
 A process that dies stops sending heartbeats; after ``heartbeat_timeout_s`` JAX's coordination
 service ends every other process with "The following tasks are unhealthy (stopped sending
@@ -63,34 +64,42 @@ def _env_int(name: str, environ) -> Optional[int]:
 
 def detected_cluster(environ=None) -> Optional[Tuple[str, int]]:
     """(name, process count) of the multi-process job this environment describes, or None:
-    this module's variables (name "hedger_jax"), else a cluster JAX's ``initialize()``
-    detects by itself (SLURM, Open MPI, ...) with more than one process. Imports no
-    backend."""
+    this module's variables (name "hedger_jax"), else SLURM (``srun``: ``SLURM_NTASKS``) or
+    Open MPI (``mpirun``: ``OMPI_COMM_WORLD_SIZE``) with more than one process, the launchers
+    whose variables JAX's ``initialize()`` then reads by itself. Imports nothing."""
     env = os.environ if environ is None else environ
-    n = _env_int(ENV_NUM_PROCESSES, env)
-    if n is not None:
-        return ("hedger_jax", n) if n > 1 else None
-    if environ is not None:          # JAX's detectors read os.environ only
-        return None
-    try:                             # JAX's own detectors, so we agree with initialize()
-        from jax._src import clusters
-
-        for kind in clusters.ClusterEnv._cluster_types:
-            if getattr(kind, "opt_in_only_method", False) or not kind.is_env_present():
-                continue
-            count = kind.get_process_count()
-            return (kind.name, count) if count and count > 1 else None
-    except (ImportError, AttributeError):     # a JAX without them: SLURM by hand
-        if "SLURM_JOB_ID" in env and _env_int("SLURM_NTASKS", env) not in (None, 1):
-            return ("slurm", int(env["SLURM_NTASKS"]))
+    for name, variable, needed in (
+            ("hedger_jax", ENV_NUM_PROCESSES, ()),
+            ("slurm", "SLURM_NTASKS", ("SLURM_JOB_ID", "SLURM_STEP_NODELIST", "SLURM_PROCID",
+                                       "SLURM_LOCALID")),
+            ("ompi", "OMPI_COMM_WORLD_SIZE", ("OMPI_MCA_orte_hnp_uri",))):
+        count = _env_int(variable, env)
+        if count is not None and all(v in env for v in needed):
+            return (name, count) if count > 1 else None
     return None
+
+
+def _client():
+    """JAX's coordination-service client. Private JAX (the one place this library reaches
+    into it): JAX has no public barrier with a timeout nor key-value store."""
+    from jax._src import distributed as jax_distributed  # noqa: private, see the docstring
+
+    client = jax_distributed.global_state.client
+    if client is None:
+        raise RuntimeError("hedger_jax.distributed: initialize() has not run")
+    return client
 
 
 def is_initialized() -> bool:
     """Whether ``jax.distributed.initialize`` has run in this process."""
-    from jax._src import distributed
+    import jax
 
-    return distributed.global_state.client is not None
+    public = getattr(jax.distributed, "is_initialized", None)   # JAX >= 0.5
+    if public is not None:
+        return public()
+    from jax._src import distributed as jax_distributed
+
+    return jax_distributed.global_state.client is not None
 
 
 def initialize(coordinator: Optional[str] = None, num_processes: Optional[int] = None,
@@ -135,10 +144,7 @@ def barrier(name: str, timeout_s: float = BARRIER_TIMEOUT_S) -> None:
 
     if jax.process_count() == 1:
         return
-    from jax._src import distributed as jax_distributed
-
-    jax_distributed.global_state.client.wait_at_barrier(
-        f"hedger_jax/{name}/{next(_barriers)}", int(timeout_s * 1000))
+    _client().wait_at_barrier(f"hedger_jax/{name}/{next(_barriers)}", int(timeout_s * 1000))
 
 
 def exit_on_error(main: Any) -> Any:
@@ -208,14 +214,13 @@ def compile_shared(jitted: Any, *args: Any) -> Any:
     compile the same program at once on one machine slow each other down (docs/scaling.md).
     Cached per program and argument shapes; every process must call it in the same order."""
     import jax
-    from jax._src import distributed as jax_distributed
     from jax.experimental.serialize_executable import deserialize_and_load, serialize
 
     key = (jitted, jax.tree_util.tree_structure(args),
            tuple((x.shape, str(x.dtype)) for x in jax.tree_util.tree_leaves(args)))
     if key in _shared_programs:
         return _shared_programs[key]
-    client = jax_distributed.global_state.client
+    client = _client()
     name = f"hedger_jax/program/{next(_program_ids)}"
     lowered = jitted.lower(*args)
     if jax.process_index() == 0:

@@ -91,6 +91,11 @@ def test_core_modules_never_import_envs():
             assert not any(m == "envs" or m.startswith("envs.") for m in mods), (name, mods)
 
 
+#: The one sanctioned use of private JAX: the coordination service's barrier and key-value
+#: store, which JAX exposes through no public API (hedger_jax/distributed.py, ``_client``).
+PRIVATE_JAX_ALLOWED = {("distributed.py", "jax._src")}
+
+
 def test_no_private_jax_imports_in_the_library():
     import ast
 
@@ -102,6 +107,8 @@ def test_no_private_jax_imports_in_the_library():
             for node in ast.walk(tree):
                 mods = [a.name for a in node.names] if isinstance(node, ast.Import) else \
                     [node.module or ""] if isinstance(node, ast.ImportFrom) else []
+                if (fname, "jax._src") in PRIVATE_JAX_ALLOWED:
+                    continue
                 assert not any("jax._src" in m for m in mods), (fname, mods)
 
 
