@@ -517,14 +517,6 @@ def _resume(cache_dir: str, batch_key: str, n: int, padded_n: int, state_like, f
     return state, results, done
 
 
-def _placed_like(like, sharding):
-    """Arrays of zeros shaped and split as ``like`` (shapes) under ``sharding``: what a program
-    is compiled for, without computing its real inputs first."""
-    return jax.tree_util.tree_map(
-        lambda x: jax.make_array_from_callback(
-            x.shape, sharding, lambda index: np.zeros(x.shape, x.dtype)[index]), like)
-
-
 def _run_batch(batch, all_params, base_seed, n_dev, init, run_block, n_blocks, cache_dir,
                batch_key, bar, on_block) -> Dict[str, np.ndarray]:
     """One batch of members through init and every block, checkpointed after each block.
@@ -540,11 +532,10 @@ def _run_batch(batch, all_params, base_seed, n_dev, init, run_block, n_blocks, c
     keys, params = _place((keys, params), sharding)
     state_like, first_like = jax.eval_shape(init, keys, params)
     resumed = _resume(cache_dir, batch_key, n, len(padded), state_like, first_like, sharding)
-    if jax.process_count() > 1:           # compiled once, by process 0 (docs/scaling.md)
-        init = compile_shared(init, keys, params)
-        state_arg = resumed[0] if resumed is not None else _placed_like(state_like, sharding)
-        run_block = compile_shared(run_block, state_arg, params)
+    several = jax.process_count() > 1     # then compiled once, by process 0 (docs/scaling.md)
     if resumed is None:
+        if several:
+            init = compile_shared(init, keys, params)
         state, first = init(keys, params)
         _check_memories(state)
         results = [gather(first)]
@@ -552,6 +543,8 @@ def _run_batch(batch, all_params, base_seed, n_dev, init, run_block, n_blocks, c
         _save_block(cache_dir, batch_key, state, results, done, n)
     else:
         state, results, done = resumed
+    if several:
+        run_block = compile_shared(run_block, state, params)
     if bar is not None:
         bar.update(done + 1)
     for blk in range(done, n_blocks):

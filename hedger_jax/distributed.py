@@ -79,12 +79,17 @@ def detected_cluster(environ=None) -> Optional[Tuple[str, int]]:
     return None
 
 
-def _client():
-    """JAX's coordination-service client. Private JAX (the one place this library reaches
-    into it): JAX has no public barrier with a timeout nor key-value store."""
-    from jax._src import distributed as jax_distributed  # noqa: private, see the docstring
+def _global_state():
+    """JAX's multi-process state. Private JAX (the one place this library reaches into it):
+    JAX has no public barrier with a timeout nor key-value store."""
+    from jax._src import distributed as jax_distributed
 
-    client = jax_distributed.global_state.client
+    return jax_distributed.global_state
+
+
+def _client():
+    """JAX's coordination-service client (raises before ``initialize``)."""
+    client = _global_state().client
     if client is None:
         raise RuntimeError("hedger_jax.distributed: initialize() has not run")
     return client
@@ -94,12 +99,8 @@ def is_initialized() -> bool:
     """Whether ``jax.distributed.initialize`` has run in this process."""
     import jax
 
-    public = getattr(jax.distributed, "is_initialized", None)   # JAX >= 0.5
-    if public is not None:
-        return public()
-    from jax._src import distributed as jax_distributed
-
-    return jax_distributed.global_state.client is not None
+    public = getattr(jax.distributed, "is_initialized", None)   # not in older JAX
+    return public() if public is not None else _global_state().client is not None
 
 
 def initialize(coordinator: Optional[str] = None, num_processes: Optional[int] = None,
@@ -109,8 +110,8 @@ def initialize(coordinator: Optional[str] = None, num_processes: Optional[int] =
     """Join this process to a multi-process JAX runtime; -> (process_id, num_processes).
 
     coordinator: "host:port" of process 0's coordination service. Unset arguments come from
-    the environment (module doc). Call it before any JAX computation, and after ``hedger_jax.cpu.configure`` if
-    you use it. A second call returns the first's answer.
+    the environment (module doc). Call it before any JAX computation, and after
+    ``hedger_jax.cpu.configure`` if you use it. A second call returns the first's answer.
     """
     import jax
 
