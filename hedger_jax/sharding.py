@@ -151,14 +151,14 @@ def sweep(train_fn: Callable, keys: Any, params: Any = None, *,
 
     The members are dealt to the devices in turn (a 1-D mesh ``"seeds"``; padded to a
     multiple of the device count by repeating the last member); each device runs its share
-    one after another on a CPU (``per_device="map"``: each member is the single-member program, so its
-    numbers do not depend on the split) and vmapped on an accelerator ("vmap"), "auto"
-    choosing. On a CPU, split it into one device per core first with
+    one after another on a CPU (``per_device="map"``: each member is the single-member
+    program, so its numbers do not depend on the split) and vmapped on an accelerator
+    ("vmap"), "auto" choosing. On a CPU, split it into one device per core first with
     ``hedger_jax.cpu.configure(host_devices=N)``; across processes (``hedger_jax.distributed``)
     every process calls ``sweep`` with the same arguments and runs its own devices' members.
 
-    Returns the outputs, leading axis ``members``: in one process JAX arrays sharded over the
-    devices; across processes NumPy arrays, gathered to every process. One compile per
+    Returns the outputs, leading axis ``members``, in the members' order: in one process JAX
+    arrays (left on the devices); across processes NumPy arrays, gathered to every process. One compile per
     (train_fn, devices, mode, members).
     """
     mesh = seed_mesh(devices)
