@@ -25,7 +25,8 @@ env_before = dict(os.environ)
 aff_before = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
 if sys.argv[1] == "import":
     import hedger_jax, envs, envs.gym_adapter, envs.mountain_car, envs.corridor
-    import hedger_jax.learner, hedger_jax.agent
+    import hedger_jax.learner, hedger_jax.agent, hedger_jax.distributed, hedger_jax.launch
+    import experiments.__main__
 import jax, jax.numpy as jnp, numpy as np
 rng = np.random.default_rng(0)
 ws = [jnp.asarray(rng.normal(size=(64, 64)).astype(np.float32) / 8) for _ in range(4)]
@@ -39,6 +40,7 @@ print(json.dumps({"env_same": dict(os.environ) == env_before,
                   "xla_flags": os.environ.get("XLA_FLAGS"),
                   "aff_same": (sorted(os.sched_getaffinity(0)) == aff_before)
                               if aff_before is not None else True,
+                  "distributed": jax.distributed.is_initialized(),
                   "bits": out.view(np.uint32).tolist()}))
 """
 
@@ -53,11 +55,13 @@ def _run_user_script(mode):
 
 
 def test_importing_changes_nothing_global():
-    """``import hedger_jax, envs`` leaves os.environ (XLA_FLAGS included), the CPU affinity
-    and a user's own jitted function's output bits as they were without the import."""
+    """``import hedger_jax, envs`` (and the experiments CLI's module) leaves os.environ
+    (XLA_FLAGS included), the CPU affinity, JAX's multi-process runtime and a user's own
+    jitted function's output bits as they were without the import."""
     plain, imported = _run_user_script("plain"), _run_user_script("import")
     assert imported["env_same"] and imported["xla_flags"] is None
     assert imported["aff_same"]
+    assert not imported["distributed"]        # jax.distributed only when asked
     assert imported["bits"] == plain["bits"]
 
 
