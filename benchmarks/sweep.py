@@ -9,8 +9,9 @@ with ``hedger_jax.jit`` after ``hedger_jax.cpu.configure()`` and run their membe
 another (``lax.map``) on one host device per core, as the experiments CLI does on a CPU:
 
 * one program: ``HedgerConfig(bandwidth=min, max_bandwidth=max)``, the bandwidths as traced
-  ``HedgerParams`` -- every (value, seed) member in one compiled program, the members dealt
-  to the devices in turn as ``hedger_jax.sweep`` deals them (``member_order``);
+  ``HedgerParams`` -- every (value, seed) member in one compiled program, prepared as
+  ``hedger_jax.sweep`` prepares it (``prepare_sweep``: members dealt to the devices in turn,
+  the settings they share as constants);
 * one compile per value: the static ``HedgerConfig(bandwidth=value)`` per value (what every
   sweep cost before traced params), seeds mapped.
 
@@ -88,7 +89,7 @@ def main(argv=None):
     from envs.mountain_car import MountainCar
     from hedger_jax import HedgerConfig, HedgerParams, RunConfig, make_train
     from hedger_jax.agent import transitions_from_demonstrations
-    from hedger_jax.sharding import member_order, per_device, seed_mesh
+    from hedger_jax.sharding import per_device, prepare_sweep, seed_mesh
 
     env = MountainCar()
     demos = transitions_from_demonstrations(simulated_person_demonstrations(seed=0))
@@ -117,12 +118,11 @@ def main(argv=None):
     train = make_train(env, config, run, phase1=demos).train
     params = HedgerParams.create(config, run, bandwidth=np.repeat(values, S))
     keys = jnp.tile(base_keys, (len(values), 1))
-    order = member_order(len(values) * S, n_dev)     # dealt to the devices as hj.sweep does
-    params, keys = jax.tree_util.tree_map(lambda x: np.asarray(x)[order], (params, keys))
-    c, r, (_, res) = timed(per_device(train, mesh, "map"), jax.device_put(keys, shard),
-                           jax.device_put(params, shard))
+    # As hj.sweep runs it: members dealt to the devices in turn, shared settings constant.
+    fn, members, back = prepare_sweep(train, keys, params, n_dev)
+    c, r, (_, res) = timed(per_device(fn, mesh, "map"), *jax.device_put(members, shard))
     one = {"compile_s": c, "run_s": r, "total_s": time.perf_counter() - t_start,
-           "final": final_steps(res)[np.argsort(order)].reshape(len(values), S).mean(1).tolist()}
+           "final": final_steps(res)[back].reshape(len(values), S).mean(1).tolist()}
     print("one program", one, flush=True)
     # One compile per value.
     t_start = time.perf_counter()

@@ -24,7 +24,7 @@ processes first with ``hedger_jax.distributed.initialize()`` (docs/scaling.md).
 from __future__ import annotations
 
 import functools
-from typing import Any, Callable, Optional, Sequence
+from typing import Any, Callable, Optional, Sequence, Tuple
 
 import jax
 import jax.numpy as jnp
@@ -140,6 +140,82 @@ def member_order(total: int, n_devices: int) -> np.ndarray:
     return np.arange(total).reshape(total // n_devices, n_devices).T.reshape(-1)
 
 
+class _Constant:
+    """A NumPy array that hashes by value (a sweep's shared setting, baked into its program)."""
+
+    def __init__(self, value: np.ndarray):
+        self.value = value
+        self._key = (value.dtype.str, value.shape, value.tobytes())
+
+    def __hash__(self):
+        return hash(self._key)
+
+    def __eq__(self, other):
+        return isinstance(other, _Constant) and self._key == other._key
+
+
+@functools.lru_cache(maxsize=32)
+def _with_constants(train_fn: Callable, treedef: Any, constants: Tuple) -> Callable:
+    """``(key, varying leaves) -> train_fn(key, params)``: the params rebuilt from the leaves
+    that vary between members and ``constants`` ((leaf index, _Constant), ...), the leaves
+    every member shares, which enter the program as constants."""
+    fixed = {i: c.value for i, c in constants}
+
+    def fn(key, varying):
+        it = iter(varying)
+        leaves = [fixed[i] if i in fixed else next(it) for i in range(treedef.num_leaves)]
+        return train_fn(key, jax.tree_util.tree_unflatten(treedef, leaves))
+
+    return fn
+
+
+def _same_for_all(x: np.ndarray) -> bool:
+    """Whether every member (leading axis) of x holds the same value (NaN equal to NaN)."""
+    return bool(np.array_equal(x, np.broadcast_to(x[:1], x.shape),
+                               equal_nan=np.issubdtype(x.dtype, np.inexact)))
+
+
+def prepare_sweep(train_fn: Callable, keys: Any, params: Any, n_devices: int):
+    """What ``sweep`` runs: (fn, args, back). fn: one member's function of args (a key and the
+    varying settings); args: host arrays with the member axis padded to a multiple of
+    n_devices and dealt to the devices in turn (``member_order``); back: (members,) each
+    member's position in the outputs.
+
+    Settings every member shares are baked into fn as constants, the rest stay traced: a
+    program whose every setting is traced compiles about twice as long and runs 1.3-1.8x
+    slower than one with constants (docs/performance.md).
+    """
+    if not isinstance(keys, jax.Array):
+        keys = jnp.asarray(keys)
+    if keys.ndim < 1 or keys.shape[0] < 1:
+        raise ValueError(f"keys: need a leading member axis with at least one member, got "
+                         f"shape {keys.shape}")
+    n = keys.shape[0]
+    fn = train_fn
+    if jax.dtypes.issubdtype(keys.dtype, jax.dtypes.prng_key):
+        fn = _with_typed_keys(train_fn, jax.random.key_impl(keys))
+        keys = jax.random.key_data(keys)
+    args = (np.asarray(keys),)
+    if params is not None:
+        flat, treedef = jax.tree_util.tree_flatten_with_path(params)
+        for path, leaf in flat:
+            shape = np.shape(leaf)
+            if not shape or shape[0] != n:
+                raise ValueError(f"params{jax.tree_util.keystr(path)}: every leaf needs the "
+                                 f"leading member axis of length {n} (as the keys), got "
+                                 f"shape {shape}")
+        leaves = [np.asarray(leaf) for _, leaf in flat]
+        shared = [_same_for_all(x) for x in leaves]
+        constants = tuple((i, _Constant(x[0])) for i, (x, c) in enumerate(zip(leaves, shared))
+                          if c)
+        fn = _with_constants(fn, jax.tree_util.tree_structure(params), constants)
+        args += ([x for x, c in zip(leaves, shared) if not c],)
+    total = n + (-n) % n_devices
+    order = member_order(total, n_devices)
+    args = jax.tree_util.tree_map(lambda x: x[order], _pad_members(args, n, total))
+    return fn, args, np.argsort(order)[:n]
+
+
 def sweep(train_fn: Callable, keys: Any, params: Any = None, *,
           devices: Optional[Sequence[Any]] = None, per_device: str = "auto") -> Any:
     """Run ``train_fn`` for every member of a sweep, the fast way for the devices there are.
@@ -153,41 +229,19 @@ def sweep(train_fn: Callable, keys: Any, params: Any = None, *,
     multiple of the device count by repeating the last member); each device runs its share
     one after another on a CPU (``per_device="map"``: each member is the single-member
     program, so its numbers do not depend on the split) and vmapped on an accelerator
-    ("vmap"), "auto" choosing. On a CPU, split it into one device per core first with
+    ("vmap"), "auto" choosing. Settings that every member shares enter the program as
+    constants (``prepare_sweep``). On a CPU, split it into one device per core first with
     ``hedger_jax.cpu.configure(host_devices=N)``; across processes (``hedger_jax.distributed``)
     every process calls ``sweep`` with the same arguments and runs its own devices' members.
 
     Returns the outputs, leading axis ``members``, in the members' order: in one process JAX
-    arrays (left on the devices); across processes NumPy arrays, gathered to every process. One compile per
-    (train_fn, devices, mode, members).
+    arrays (left on the devices); across processes NumPy arrays, gathered to every process.
+    One compile per (train_fn, shared settings, devices, mode, members).
     """
     mesh = seed_mesh(devices)
-    n_dev = mesh.devices.size
-    if not isinstance(keys, jax.Array):
-        keys = jnp.asarray(keys)
-    if keys.ndim < 1 or keys.shape[0] < 1:
-        raise ValueError(f"keys: need a leading member axis with at least one member, got "
-                         f"shape {keys.shape}")
-    n = keys.shape[0]
-    fn = train_fn
-    if jax.dtypes.issubdtype(keys.dtype, jax.dtypes.prng_key):
-        fn = _with_typed_keys(train_fn, jax.random.key_impl(keys))
-        keys = jax.random.key_data(keys)
-    args = (np.asarray(keys),)
-    if params is not None:
-        for path, leaf in jax.tree_util.tree_flatten_with_path(params)[0]:
-            shape = np.shape(leaf)
-            if not shape or shape[0] != n:
-                raise ValueError(f"params{jax.tree_util.keystr(path)}: every leaf needs the "
-                                 f"leading member axis of length {n} (as the keys), got "
-                                 f"shape {shape}")
-        args += (jax.tree_util.tree_map(np.asarray, params),)
-    total = n + (-n) % n_dev
-    order = member_order(total, n_dev)
-    placed = jax.tree_util.tree_map(lambda x: x[order], _pad_members(args, n, total))
+    fn, args, back = prepare_sweep(train_fn, keys, params, mesh.devices.size)
     program, sharding = _compiled(fn, mesh, resolve_per_device(per_device, mesh))
-    placed = global_put(placed, sharding)
-    back = np.argsort(order)[:n]                 # each member's position in the outputs
+    placed = global_put(args, sharding)
     if jax.process_count() == 1:
         return _take_members(program(*placed), back)
     from hedger_jax.distributed import compile_shared
