@@ -125,3 +125,26 @@ def test_sweep_deals_members_to_devices_and_checks_params():
         sweep(lambda k, p: p["a"], keys, {"a": jnp.ones(2)})
     with pytest.raises(ValueError, match="leading member axis"):
         sweep(lambda k, p: p["a"], keys, {"a": jnp.float32(1.0)})
+
+
+def test_shared_settings_become_constants_and_results_do_not_change():
+    """prepare_sweep passes only the leaves that differ between members; the leaves every
+    member shares (NaN included) are baked in, and the outputs equal a vmap over all of them."""
+    from hedger_jax.sharding import prepare_sweep, sweep
+
+    keys = jax.random.split(jax.random.PRNGKey(1), 4)
+    params = {"scale": jnp.array([1.0, 2.0, 3.0, 4.0]), "shift": jnp.full(4, 0.5),
+              "nan": jnp.full(4, jnp.nan), "steps": jnp.full(4, 3, jnp.int32)}
+
+    def train(k, p):
+        x = jax.random.normal(k, (2,)) * p["scale"] + p["shift"]
+        return x * p["steps"] + jnp.where(jnp.isnan(p["nan"]), 0.0, 1.0)
+
+    fn, args, back = prepare_sweep(train, keys, params, 2)
+    assert len(args[1]) == 1 and args[1][0].shape == (4,)       # only "scale" varies
+    np.testing.assert_array_equal(np.sort(args[1][0]), [1.0, 2.0, 3.0, 4.0])
+    assert back.tolist() == [0, 2, 1, 3]                        # dealt to 2 devices in turn
+    out = sweep(train, keys, params)
+    # Equal to float32 round-off (XLA may fold the constants in another order).
+    np.testing.assert_allclose(np.asarray(out), np.asarray(jax.vmap(train)(keys, params)),
+                               rtol=1e-5, atol=1e-6)
