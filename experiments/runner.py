@@ -182,10 +182,6 @@ def usable_devices(devices: Optional[int]) -> int:
     return min(int(devices), have)
 
 
-def _to_numpy(tree):
-    return jax.tree_util.tree_map(lambda x: np.asarray(x), tree)
-
-
 def _member_slices(leaf) -> List[tuple]:
     """(first member, NumPy block of members) for each shard of ``leaf`` this process holds."""
     out, seen = [], set()
@@ -443,11 +439,11 @@ def _as_process_zero(flags: List[bool]) -> List[bool]:
     return [bool(f) for f in multihost_utils.broadcast_one_to_all(np.asarray(flags, bool))]
 
 
-def _agree(value: int) -> int:
-    """The smallest of every process's ``value`` (so that all take the same branch)."""
+def _every_process(value: int) -> np.ndarray:
+    """Every process's ``value`` (int32 (processes,)), on every process."""
     if jax.process_count() == 1:
-        return value
-    return int(np.min(gather(np.array([value], np.int32))))
+        return np.array([value], np.int32)
+    return np.asarray(gather(np.array([value], np.int32)))
 
 
 def _remove_checkpoints(cache_dir: str, batch_key: str, members=None, blocks=None) -> None:
@@ -493,8 +489,8 @@ def _resume(cache_dir: str, batch_key: str, n: int, padded_n: int, state_like, f
                 done = -1
                 break
             loaded.append(member)
-    lowest, highest = _agree(done), -_agree(-done)
-    if lowest < 0 or lowest != highest:
+    found_by = _every_process(done)      # every process must take the same branch
+    if found_by.min() < 0 or found_by.min() != found_by.max():
         _barrier(f"fresh-{batch_key}")
         if jax.process_index() == 0:
             _remove_checkpoints(cache_dir, batch_key)
