@@ -131,7 +131,7 @@ class HedgerConfig:
     Beyond the paper (off by default; docs/adaptive-kernel.md): ``bandwidth_k``,
     ``kernel_range`` and ``bandwidth_shrink`` (a width read from the stored data,
     ``hedger_jax.data_bandwidth``); ``value_eps`` (log-scale values); ``random_ties``,
-    ``guess_unknown`` and ``greedy_temperature`` (the greedy choice, ``hedger_jax.greedy``);
+    ``guess_unknown`` (the greedy choice, ``hedger_jax.greedy``);
     ``clip_to_neighbours`` (``hedger_jax.prediction``); ``replay_floor``
     (``hedger_jax.train``); ``backup_sweeps`` (memory-wide backups after every episode,
     ``hedger_jax.backup``; the memory then keeps each point's transition). ``ridge`` is the
@@ -160,7 +160,6 @@ class HedgerConfig:
     region_update: bool = setting(True, "switch")
     random_ties: bool = setting(False, "switch")
     guess_unknown: bool = setting(False, "switch")
-    greedy_temperature: float = setting(0.0, "number", **_NONNEG)
     clip_to_neighbours: bool = setting(False, "switch")
     replay_floor: bool = setting(False, "switch")
     discrete_actions: Optional[Tuple[Tuple[float, ...], ...]] = setting(
@@ -357,17 +356,13 @@ class HedgerConfig:
 
 def traced_failure(config: HedgerConfig, p: Dict[str, np.ndarray]) -> Optional[str]:
     """The rules tying traced values ``p`` (NumPy, any batch shape) to the static config:
-    k_min within [dim + 1, max_neighbours], no greedy temperature with discrete actions, and
-    a selection radius within what the neighbour index is built for. The message of the
+    k_min within [dim + 1, max_neighbours], and a selection radius within what the neighbour index is built for. The message of the
     first broken one, else None."""
     k_min = p["k_min"]
     if np.any((k_min < config.dim + 1) | (k_min > config.max_neighbours)):
         bad = k_min[(k_min < config.dim + 1) | (k_min > config.max_neighbours)].ravel()[0]
         return (f"k_min: must be in [dim + 1, max_neighbours] = [{config.dim + 1}, "
                 f"{config.max_neighbours}], got {bad}")
-    if config.is_discrete and np.any(p["greedy_temperature"] != 0):
-        return ("greedy_temperature: must be 0 with discrete actions (a weighted mean of them "
-                f"is not one of them), got {np.max(p['greedy_temperature'])}")
     if np.any(p["k_thresh"] > config.max_k_thresh * (1.0 + 1e-6)):
         return (f"bandwidth: the selection radius k_thresh = {float(np.max(p['k_thresh'])):.6g}"
                 f" (bandwidth x sqrt(ln(1 / min_weight))) exceeds the "

@@ -15,13 +15,6 @@ least ``k_min`` neighbours within the kernel are still needed). Only where those
 either is the action random. The value stays ``default_value`` and ``known`` False: the guess
 steers the policy, never a training target (``greedy_value``).
 
-With ``greedy_temperature`` T > 0 (beyond the paper) the greedy action is the mean of the
-search's evaluated samples weighted by exp((y - y_best) / T), y their values as the fit sees
-them (``to_fit_space``): where the actions' values differ by less than the fits' noise the
-best sample is that noise's pick, and the weighted mean is not. The value (and so the
-training target) is the samples' values averaged with the same weights, the value of acting
-so rather than the max over the fits' noise, which over-estimates.
-
 Every function taking ``params`` accepts a ``HedgerParams`` (traced hyperparameters) or None
 for the config's values.
 """
@@ -36,7 +29,7 @@ import numpy as np
 from hedger_jax.config import HedgerConfig
 from hedger_jax.data_bandwidth import with_data_bandwidth
 from hedger_jax.memory import Memory
-from hedger_jax.params import constant, resolve, to_fit_space
+from hedger_jax.params import constant, resolve
 from hedger_jax.validation import expect, expect_key
 from hedger_jax.prediction import Prediction, predict_detailed
 
@@ -142,23 +135,9 @@ def _break_ties(ties, fs: jax.Array, best: jax.Array, n_samples: int):
     return jnp.where(use, pick, best), use, pick
 
 
-def _soft_choice(soft, xs, fs, filled, best, x, fx):
-    """With soft = (temperature (), fit) and a temperature > 0: the means of the evaluated
-    samples xs (n,) and their values fs (n,) weighted by exp((fit(f) - fit(f_best)) / T);
-    else (x, fx) unchanged."""
-    temperature, fit = soft
-    y = fit(fs)
-    on = temperature > 0
-    # The best sample has weight 1, so the sum is >= 1; unfilled slots weigh 0.
-    w = jnp.where(filled, jnp.exp(jnp.minimum(
-        (y - y[best]) / jnp.where(on, temperature, 1.0), 0.0)), 0.0)
-    return (jnp.where(on, jnp.sum(w * xs) / jnp.sum(w), x),
-            jnp.where(on, jnp.sum(w * jnp.where(filled, fs, 0.0)) / jnp.sum(w), fx))
-
-
 def search_1d(f: Callable[[jax.Array], Tuple[jax.Array, ...]], low: float, high: float,
               n_samples: int, iters: int, tol: float, initial=None, with_count: bool = False,
-              with_aux: bool = False, ties=None, soft=None):
+              with_aux: bool = False, ties=None):
     """Maximise f over [low, high]; f: x () -> (value (), known ()), or with ``with_aux``
     (value (), known (), aux): aux any pytree that f computes along (e.g. a neighbour set).
 
@@ -166,9 +145,6 @@ def search_1d(f: Callable[[jax.Array], Tuple[jax.Array, ...]], low: float, high:
     ``search_grid(low, high, n_samples)``, when the caller evaluated them in a batch of its own.
     ``ties``: optional (switch bool (), U[0, 1) draw ()): where the switch holds and two or
     more initial samples share the best value, the draw picks one of them.
-    ``soft``: optional (temperature (), fit: values -> values): where the temperature is > 0
-    the returned x and f are the means of the evaluated samples and their values weighted
-    by exp((fit(f) - fit(f_best)) / temperature) (any_known unchanged).
     Returns (x_best (), f_best (), any_known ()): the best evaluated sample (ties to the
     first, or as ``ties`` says); with ``with_count`` also the number of refinement
     evaluations (int32 (), at most ``iters``); with ``with_aux`` then also (aux of the grid's samples, leading axis
@@ -229,10 +205,7 @@ def search_1d(f: Callable[[jax.Array], Tuple[jax.Array, ...]], low: float, high:
         if with_aux:
             best_aux = jax.tree_util.tree_map(
                 lambda a, b: jnp.where(use, a[jnp.minimum(pick, n_samples - 1)], b), aux0, best_aux)
-    x, fx = xs[best], fs[best]
-    if soft is not None:
-        x, fx = _soft_choice(soft, xs, fs, filled, best, x, fx)
-    out = (x, fx, any_known) + ((n_evals,) if with_count else ())
+    out = (xs[best], fs[best], any_known) + ((n_evals,) if with_count else ())
     return out + ((aux0, best_aux) if with_aux else ())
 
 
@@ -281,17 +254,7 @@ def _continuous_search(config: HedgerConfig, memory: Memory, state: jax.Array, i
 
     return search_1d(f, config.action_low[0], config.action_high[0], config.greedy_samples,
                      config.greedy_iters, config.greedy_tol, initial, with_aux=with_aux,
-                     ties=_ties(config, params, u_tie), soft=_soft(config, params))
-
-
-def _soft(config: HedgerConfig, params):
-    """search_1d's ``soft`` (temperature, values -> fit space): None where
-    ``greedy_temperature`` is a constant 0 (the same program as without the option)."""
-    p = resolve(config, params)
-    t = p.greedy_temperature
-    if constant(t) == 0:
-        return None
-    return jnp.asarray(t, jnp.float32), lambda f: to_fit_space(p, f)
+                     ties=_ties(config, params, u_tie))
 
 
 def greedy_candidates(config: HedgerConfig) -> jax.Array:
@@ -317,8 +280,7 @@ def greedy_value(config: HedgerConfig, memory: Memory, state: jax.Array, params=
     """max_a Q(state, a) as used by training: state (S,) -> (value (), known ()).
 
     Deterministic (no key). Unknown candidates count as ``default_value``; ``known`` says
-    whether any candidate was known. With ``greedy_temperature`` > 0 (continuous actions)
-    the search's values averaged by the soft choice's weights (module doc). params: ``HedgerParams``, or None for the config's.
+    whether any candidate was known. params: ``HedgerParams``, or None for the config's.
     """
     expect("state", state, (config.state_dim,))
     if config.is_discrete:
@@ -372,12 +334,9 @@ def greedy_choice(config: HedgerConfig, memory: Memory, state: jax.Array, u: jax
     x, value, any_known, sets, best = _continuous_search(config, memory, state, with_aux=True,
                                                          params=params, u_tie=u[0])
     x, found = _guess_continuous(config, memory, state, params, u[0], x, any_known)
-    # A random or guessed action (nothing known), or a weighted mean of the samples
-    # (greedy_temperature): its K at the memory's kernel is not known.
-    soft = _soft(config, params)
-    has_chosen = any_known if soft is None else any_known & ~(soft[0] > 0)
+    # A random or guessed action (nothing known): its K at the memory's kernel is not known.
     return _continuous_choice(config, u, x, value, any_known, found, params) + (
-        GreedySets(sets, best, has_chosen),)
+        GreedySets(sets, best, any_known),)
 
 
 def _continuous_choice(config: HedgerConfig, u: jax.Array, x, value, any_known, found,
@@ -443,9 +402,7 @@ def greedy_action(config: HedgerConfig, memory: Memory, state: jax.Array, key: j
     Ties among the best discrete actions are broken at random, among the continuous
     search's initial samples with ``random_ties`` (else the first); when nothing is known the
     action is uniformly random (from the set, or in the box; with ``guess_unknown`` guessed
-    first, module doc), its value ``default_value``, and ``known`` is False. With
-    ``greedy_temperature`` > 0 the continuous action and its value are the samples' weighted
-    means (module doc). The randomness
+    first, module doc), its value ``default_value``, and ``known`` is False. The randomness
     is one ``jax.random.uniform`` draw of ``greedy_draws(config)`` numbers from ``key``.
     params: ``HedgerParams``, or None for the config's values.
     """

@@ -146,8 +146,8 @@ def _broadcast(leaves: dict, d: int) -> HedgerParams:
 
 def check_params(config: HedgerConfig, params: HedgerParams) -> HedgerParams:
     """Host-side check of (concrete) params against their declared ranges and the static
-    config (``config.traced_failure``: k_min, the greedy temperature with discrete actions,
-    the selection radius against ``max_bandwidth``). Raises ``InvalidParamsError`` naming
+    config (``config.traced_failure``: k_min, the selection radius against
+    ``max_bandwidth``). Raises ``InvalidParamsError`` naming
     the field. Returns the params."""
     p = {name: np.asarray(getattr(params, name)) for name in FIELDS}
     failure = first_failure(FIELDS, p, SPECS) or traced_failure(config, p)

@@ -63,13 +63,10 @@ CORRIDOR_ENV_PARAMS = _frozen(dict(train_x_max=0.5))
 #: ([-1, 1] -> x0.5: no hand-picked factor).
 ADAPTIVE_PARAMS = _frozen(dict(ADAPTIVE))
 ADAPTIVE_CONTINUOUS_PARAMS = _frozen(dict(ADAPTIVE_CONTINUOUS, action_scale=0.5))
-#: The corridor's adaptive line: the adaptive preset with its two per-task numbers: a wider
+#: The corridor's adaptive line: the adaptive preset with its one per-task number, a wider
 #: span (48 of the 1024 pooled points: m = 4 leaves its 4-D inputs "don't know" almost
-#: everywhere) and a soft greedy choice (near alignment the turn commands' values differ by
-#: less than the fits' noise; it costs mountain car 27 steps). The observation is scaled only
-#: from its bounds.
-CORRIDOR_ADAPTIVE_PARAMS = _frozen(dict(ADAPTIVE_CONTINUOUS, bandwidth_k=48,
-                                        greedy_temperature=0.3))
+#: everywhere). The observation is scaled only from its bounds.
+CORRIDOR_ADAPTIVE_PARAMS = _frozen(dict(ADAPTIVE_CONTINUOUS, bandwidth_k=48))
 
 #: Any other Gymnasium task (beyond the paper; docs/classic-control.md): the adaptive preset
 #: with room for its data-chosen width (at most 2 x 0.1 of the [0, 1] scaled ranges: 4-D

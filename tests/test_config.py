@@ -58,7 +58,7 @@ def test_k_min_lower_bound_depends_on_dim():
     dict(alpha=0.0, gamma=0.0), dict(alpha=1.0, gamma=1.0), dict(capacity=1),
     dict(k_min=3, max_neighbours=3), dict(full_policy="overwrite_oldest"),
     dict(full_policy="error"), dict(discrete_actions=((-1.0,), (0.0,), (1.0,))),
-    dict(min_weight=1e-9, ivh_tol=0.0, value_eps=0.0, greedy_temperature=0.0),
+    dict(min_weight=1e-9, ivh_tol=0.0, value_eps=0.0),
 ])
 def test_valid_edge_values_are_kept_as_given(kwargs):
     """Values on the edge of their ranges are accepted and stored as given (as Python numbers
@@ -199,7 +199,7 @@ _VALUES = {
     "value_eps": [0.0, 1e-6], "k_min": [4, 9], "max_neighbours": [16, 64],
     "default_value": [-1.0, 2.5], "alpha": [0.0, 1.0], "gamma": [0.5, 0.99],
     "use_ivh": [False], "region_update": [False], "random_ties": [True],
-    "guess_unknown": [True], "greedy_temperature": [0.0, 0.3], "clip_to_neighbours": [True],
+    "guess_unknown": [True], "clip_to_neighbours": [True],
     "replay_floor": [True], "discrete_actions": [((-1.0,), (1.0,))],
     "action_low": [-2.0, (-0.5,)], "action_high": [3.0], "greedy_samples": [3, 21],
     "greedy_iters": [0, 4], "greedy_tol": [1e-5], "full_policy": ["overwrite_oldest"],
