@@ -9,9 +9,15 @@ transition (s_i, a_i, r_i, s'_i) -- the memory keeps it beside the point when
 
 All targets are computed from the memory before the sweep (a synchronous, Jacobi-style
 sweep, so the result does not depend on the order of the points), in one vmapped call over
-chunks of ``BACKUP_CHUNK`` next states (``lax.map``: memory bounded by a chunk). The max is
-``greedy.greedy_value``, the one the replay uses, so the IVH guards every prediction inside
-it. Only the point itself moves: every point gets its own update, so moving its neighbours
+chunks of ``BACKUP_CHUNK`` next states (``lax.map``: memory bounded by a chunk). The max runs
+over ``greedy.greedy_candidates`` (the discrete set, or the continuous search's initial
+grid) and over **known** predictions only: the IVH guards every prediction inside it, and
+an unknown candidate does not enter it (``default_value`` only where no candidate is known).
+The greedy policy and the paper's replay still count an unknown candidate as
+``default_value`` (the paper's rule), so an optimistic default still draws the policy to
+untried actions; repeated sweeps would otherwise copy that optimism into every value that can
+reach an unknown candidate, and the values swing as the unknowns are filled in (Pendulum-v1,
+docs/classic-control.md). Only the point itself moves: every point gets its own update, so moving its neighbours
 too would count each backup many times. This is kernel-based RL (Ormoneit & Sen 2002) /
 fitted Q iteration (Ernst et al. 2005) on HEDGER's memory.
 
@@ -21,9 +27,7 @@ to the neighbours' values, and the value scale). ``backup_plan`` finds, once, ev
 neighbour sets, coefficients and "known" flags (the IVH's verdict) -- the cost of one sweep --
 and ``backup_with_plan`` then sweeps with gathers and dot products only, about a hundred times
 cheaper, so many sweeps follow each episode (``backup_sweeps``). A plan is exact for the
-memory it was built from: with discrete actions its first sweep is ``backup_memory``'s. For
-continuous actions the max runs over the greedy search's initial grid
-(``greedy.greedy_candidates``), without the refinement. Points stored after the plan was
+memory it was built from: its first sweep is ``backup_memory``'s. Points stored after the plan was
 built are not backed up by it, and a slot overwritten since (a ring buffer) is read at its
 value when the plan was built: the learner rebuilds it as the memory grows
 (``RunConfig.replan_fraction``, at most 1, so that fewer than capacity writes come between).
@@ -37,15 +41,15 @@ import jax.numpy as jnp
 
 from hedger_jax.config import HedgerConfig
 from hedger_jax.data_bandwidth import with_data_bandwidth
-from hedger_jax.greedy import greedy_candidates, greedy_value
+from hedger_jax.greedy import greedy_candidates
 from hedger_jax.lwr import local_fit_columns
 from hedger_jax.memory import (FLAG_NONFINITE, Memory, scale_inputs, select_neighbours,
                                valid_mask)
 from hedger_jax.params import (HedgerParams, flag, from_fit_space, resolve, to_fit_space)
-from hedger_jax.prediction import clip_to_neighbour_values, neighbour_design
+from hedger_jax.prediction import clip_to_neighbour_values, neighbour_design, predict
 
 __all__ = ["BACKUP_CHUNK", "BackupPlan", "backup_targets", "backup_memory", "backup_plan",
-           "overwritten", "plan_targets", "backup_with_plan", "backup_sweeps"]
+           "known_max", "overwritten", "plan_targets", "backup_with_plan", "backup_sweeps"]
 
 #: Next states evaluated per vmapped call of a sweep (bounds the sweep's working memory).
 BACKUP_CHUNK = 512
@@ -86,19 +90,32 @@ def _targets(config: HedgerConfig, memory: Memory, q_next: jax.Array, p: HedgerP
     return y.astype(jnp.float32), valid_mask(memory) & stored.present
 
 
+def known_max(values: jax.Array, known: jax.Array, default_value) -> jax.Array:
+    """max over the last axis of the known ``values`` (..., n) -> (...): ``default_value``
+    where none of ``known`` (..., n) holds."""
+    best = jnp.max(jnp.where(known, values, -jnp.inf), axis=-1)
+    return jnp.where(jnp.any(known, axis=-1), best, jnp.float32(default_value))
+
+
 def backup_targets(config: HedgerConfig, memory: Memory,
                    params: Optional[HedgerParams] = None):
     """The targets of one sweep -> (y float32 (capacity,), use bool (capacity,)).
 
-    y_i = r_i + gamma max_a' Q(s'_i, a') (0 for the max at a terminal s'_i), from the memory
-    as it is (``greedy_value``); use_i: slot i holds a point that came from a transition.
-    params: ``HedgerParams``, or None for the config's.
+    y_i = r_i + gamma max_a' Q(s'_i, a') (0 for the max at a terminal s'_i), the max over
+    ``greedy_candidates`` and known predictions only (``known_max``), from the memory as it
+    is; use_i: slot i holds a point that came from a transition. params: ``HedgerParams``,
+    or None for the config's.
     """
     params = with_data_bandwidth(config, memory, params)   # one width for the whole sweep
-    q_next = _chunked(memory, lambda states: jax.vmap(
-        lambda s: greedy_value(config, memory, s, params)[0])(states),
-        lambda n: jnp.zeros((n,), jnp.float32))
-    return _targets(config, memory, q_next, resolve(config, params))
+    p = resolve(config, params)
+    actions = greedy_candidates(config)
+
+    def q_max(s):
+        values, known, _ = jax.vmap(lambda a: predict(config, memory, s, a, params))(actions)
+        return known_max(values, known, p.default_value)
+
+    q_next = _chunked(memory, jax.vmap(q_max), lambda n: jnp.zeros((n,), jnp.float32))
+    return _targets(config, memory, q_next, p)
 
 
 def _apply(config: HedgerConfig, memory: Memory, y: jax.Array, use: jax.Array,
@@ -201,8 +218,8 @@ def overwritten(memory: Memory, plan: BackupPlan) -> jax.Array:
 def plan_targets(config: HedgerConfig, memory: Memory, plan: BackupPlan,
                  params: Optional[HedgerParams] = None):
     """``backup_targets`` through a plan -> (y (capacity,), use (capacity,)): the max over
-    the candidates of each known prediction c'y (clipped to its neighbours' values with
-    ``clip_to_neighbours``), ``default_value`` where not known. A slot overwritten since the
+    the candidates' known predictions c'y (clipped to its neighbours' values with
+    ``clip_to_neighbours``; ``known_max``). A slot overwritten since the
     plan was built is read at its value then, and is not backed up: the plan knows nothing
     of its new point."""
     p = resolve(config, params)
@@ -212,8 +229,8 @@ def plan_targets(config: HedgerConfig, memory: Memory, plan: BackupPlan,
     fit = jnp.sum(jnp.where(plan.mask, plan.coef * y, 0.0), axis=-1)
     fit = jax.vmap(jax.vmap(lambda f, yy, m: clip_to_neighbour_values(p, f, yy, m)))(
         fit, y, plan.mask)
-    value = jnp.where(plan.known, from_fit_space(p, fit), jnp.float32(p.default_value))
-    y_next, use = _targets(config, memory, jnp.max(value, axis=-1), p)
+    q_next = known_max(from_fit_space(p, fit), plan.known, p.default_value)
+    y_next, use = _targets(config, memory, q_next, p)
     return y_next, use & plan.rows & ~old
 
 

@@ -54,8 +54,9 @@ def _memory(cfg, seed=0, reward_shift=0.0):
 
 
 def _reference_sweep(cfg, mem):
-    """float64: y_i = r_i + gamma max_a Q(s'_i, a) (0 at a terminal), Q_i += alpha (y_i - Q_i)
-    for every present slot, all from the memory before the sweep. Returns (new values as
+    """float64: y_i = r_i + gamma max_a Q(s'_i, a) (0 at a terminal; the max over known
+    predictions, default_value where none is known), Q_i += alpha (y_i - Q_i) for every
+    present slot, all from the memory before the sweep. Returns (new values as
     stored (fit space), a mask of the slots whose max was not ambiguous)."""
     refp = RefParams(bandwidth=cfg.bandwidth, k_min=cfg.k_min, max_neighbours=cfg.max_neighbours,
                      k_thresh=default_k_thresh(cfg.bandwidth, cfg.min_weight),
@@ -74,7 +75,8 @@ def _reference_sweep(cfg, mem):
         for a in ACTIONS:
             r = refp.predict(P, raw, size, np.concatenate([tr.next_obs[:, i], a]))
             clear[i] &= not r.ambiguous
-            q_next = max(q_next, r.value if r.known else cfg.default_value)
+            q_next = max(q_next, r.value) if r.known else q_next
+        q_next = cfg.default_value if q_next == -np.inf else q_next
         y = float(tr.reward[i]) + cfg.gamma * (0.0 if tr.terminated[i] else q_next)
         out[i] = to_fit(raw[i] + cfg.alpha * (y - raw[i]), cfg.value_eps)
     return out, clear
@@ -108,9 +110,23 @@ def test_a_sweep_equals_the_reference_for_each_memory_under_vmap():
         _assert_sweep(_config(alpha=alpha), m, jax.tree_util.tree_map(lambda x: x[b], out))
 
 
-def test_targets_of_continuous_actions_use_the_greedy_search_chunk_by_chunk():
-    """Continuous actions: every target is r + gamma greedy_value(s') of its own point, also
-    across chunk boundaries (a capacity that is not a multiple of the chunk)."""
+def _grid_known_max(cfg, mem, states):
+    """max over greedy_candidates of the known predictions at each state (default_value where
+    none is known), from ``predict`` itself."""
+    from hedger_jax.greedy import greedy_candidates
+    from hedger_jax.prediction import predict
+
+    acts = greedy_candidates(cfg)
+    v, k, _ = jax.jit(jax.vmap(lambda s: jax.vmap(lambda a: predict(cfg, mem, s, a))(acts)))(
+        states)
+    v, k = np.asarray(v, np.float64), np.asarray(k)
+    return np.where(k.any(1), np.where(k, v, -np.inf).max(1), cfg.default_value), k
+
+
+def test_targets_of_continuous_actions_use_the_search_grid_chunk_by_chunk():
+    """Continuous actions: every target is r + gamma (the max of the known predictions over
+    the search's initial grid) of its own point, also across chunk boundaries (a capacity
+    that is not a multiple of the chunk)."""
     from hedger_jax import backup
 
     cfg = _config(discrete_actions=None, capacity=300)
@@ -121,11 +137,37 @@ def test_targets_of_continuous_actions_use_the_greedy_search_chunk_by_chunk():
         y, use = jax.jit(functools.partial(backup_targets, cfg))(mem)
     finally:
         backup.BACKUP_CHUNK = old
-    tr = mem.transitions
-    q = jax.jit(jax.vmap(lambda s: greedy_value(cfg, mem, s)[0]))(tr.next_obs.T[:N])
-    want = tr.reward[:N] + cfg.gamma * jnp.where(tr.terminated[:N], 0.0, q)
-    np.testing.assert_allclose(np.asarray(y)[:N], np.asarray(want), rtol=1e-5, atol=1e-5)
+    tr = jax.tree_util.tree_map(np.asarray, mem.transitions)
+    q, _ = _grid_known_max(cfg, mem, tr.next_obs.T[:N])
+    want = tr.reward[:N] + cfg.gamma * np.where(tr.terminated[:N], 0.0, q)
+    np.testing.assert_allclose(np.asarray(y)[:N], want, rtol=1e-5, atol=1e-5)
     assert np.asarray(use).sum() == N - 1
+
+
+def test_an_unknown_candidate_does_not_enter_the_max_however_high_its_default():
+    """With "don't know" worth 100 (far above every stored value), a next state with some
+    candidates known and some not takes the max of the known ones; one with none known takes
+    the default. Exact sweep and plan agree, discrete and continuous."""
+    from hedger_jax.backup import backup_plan, plan_targets
+
+    # The discrete set gets an action no stored point is near: never known.
+    for acts in (ACTIONS + ((1.0,),), None):
+        cfg = _config(default_value=100.0, discrete_actions=acts)
+        mem = _memory(cfg)
+        tr = jax.tree_util.tree_map(np.asarray, mem.transitions)
+        # Next states far outside the data for the first 10 points: nothing known there.
+        nxt = tr.next_obs.copy()
+        nxt[:, :10] = 5.0
+        mem = mem._replace(transitions=mem.transitions._replace(next_obs=jnp.asarray(nxt)))
+        q, k = _grid_known_max(cfg, mem, nxt.T[:N])
+        partly = k.any(1) & ~k.all(1)
+        assert partly.sum() >= 3 and not k[:10].any()
+        assert np.all(q[partly] < 10.0) and np.all(q[:10] == 100.0)
+        want = tr.reward[:N] + cfg.gamma * np.where(tr.terminated[:N], 0.0, q)
+        y, _ = jax.jit(functools.partial(backup_targets, cfg))(mem)
+        y_plan, _ = jax.jit(lambda m: plan_targets(cfg, m, backup_plan(cfg, m)))(mem)
+        for got in (y, y_plan):
+            np.testing.assert_allclose(np.asarray(got)[:N], want, rtol=1e-4, atol=1e-4)
 
 
 def test_the_replay_stores_each_transition_beside_its_point_and_then_sweeps():
@@ -217,18 +259,14 @@ def test_a_plan_under_vmap_equals_each_memory_s_own():
 def test_a_continuous_plan_takes_the_max_over_the_search_grid():
     """Continuous actions: the plan's max runs over ``greedy_candidates`` (no refinement)."""
     from hedger_jax.backup import backup_plan, plan_targets
-    from hedger_jax.greedy import greedy_candidates
-    from hedger_jax.prediction import predict
 
     cfg = _config(discrete_actions=None)
     mem = _memory(cfg)
     y, use = jax.jit(lambda m: plan_targets(cfg, m, backup_plan(cfg, m)))(mem)
-    tr = mem.transitions
-    acts = greedy_candidates(cfg)
-    q = jax.jit(jax.vmap(lambda s: jnp.max(jax.vmap(lambda a: predict(cfg, mem, s, a)[0])(
-        acts))))(tr.next_obs.T[:N])
-    want = tr.reward[:N] + cfg.gamma * jnp.where(tr.terminated[:N], 0.0, q)
-    np.testing.assert_allclose(np.asarray(y)[:N], np.asarray(want), rtol=1e-4, atol=1e-4)
+    tr = jax.tree_util.tree_map(np.asarray, mem.transitions)
+    q, _ = _grid_known_max(cfg, mem, tr.next_obs.T[:N])
+    want = tr.reward[:N] + cfg.gamma * np.where(tr.terminated[:N], 0.0, q)
+    np.testing.assert_allclose(np.asarray(y)[:N], want, rtol=1e-4, atol=1e-4)
     assert np.asarray(use).sum() == N - 1
 
 
