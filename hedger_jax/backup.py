@@ -17,8 +17,8 @@ The greedy policy and the paper's replay still count an unknown candidate as
 ``default_value`` (the paper's rule), so an optimistic default still draws the policy to
 untried actions; repeated sweeps would otherwise copy that optimism into every value that can
 reach an unknown candidate, and the values swing as the unknowns are filled in (Pendulum-v1,
-docs/classic-control.md). Only the point itself moves: every point gets its own update, so moving its neighbours
-too would count each backup many times. This is kernel-based RL (Ormoneit & Sen 2002) /
+docs/classic-control.md). Only the point itself moves: every point gets its own update, so
+moving its neighbours too would count each backup many times. This is kernel-based RL (Ormoneit & Sen 2002) /
 fitted Q iteration (Ernst et al. 2005) on HEDGER's memory.
 
 Sweeps with a plan. Each prediction is linear in the stored values it reads: the local fit's
@@ -27,8 +27,8 @@ to the neighbours' values, and the value scale). ``backup_plan`` finds, once, ev
 neighbour sets, coefficients and "known" flags (the IVH's verdict) -- the cost of one sweep --
 and ``backup_with_plan`` then sweeps with gathers and dot products only, about a hundred times
 cheaper, so many sweeps follow each episode (``backup_sweeps``). A plan is exact for the
-memory it was built from: its first sweep is ``backup_memory``'s. Points stored after the plan was
-built are not backed up by it, and a slot overwritten since (a ring buffer) is read at its
+memory it was built from: its first sweep is ``backup_memory``'s. Points stored after the
+plan was built are not backed up by it, and a slot overwritten since (a ring buffer) is read at its
 value when the plan was built: the learner rebuilds it as the memory grows
 (``RunConfig.replan_fraction``, at most 1, so that fewer than capacity writes come between).
 """
