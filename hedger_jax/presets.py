@@ -73,11 +73,13 @@ CORRIDOR_ADAPTIVE_PARAMS = _frozen(dict(ADAPTIVE_CONTINUOUS, bandwidth_k=24))
 #: with room for its data-chosen width (at most 2 x 0.1 of the [0, 1] scaled ranges: 4-D
 #: states are sparse), plain values (the task's own reward keeps them within 1 / (1 - gamma)
 #: of it), "don't know" worth 0, five memory-wide sweeps after every episode through a plan
-#: (``hedger_jax.backup``) rebuilt as the memory grows (``RunConfig.replan_fraction``), and a
-#: ring buffer that keeps the newest ``capacity`` points. ``hedger_jax.task_settings`` adds
-#: what it reads from the task (the discount, the action's scale).
+#: (``hedger_jax.backup``) rebuilt as the memory grows (``RunConfig.replan_fraction``), and
+#: room for 150,000 points (every point of the classic-control budgets: once a ring buffer
+#: overwrites old points, what they taught is lost), the newest kept beyond it.
+#: ``hedger_jax.task_settings`` adds what it reads from the task (the discount, the action's
+#: scale).
 TASK = _frozen(dict(ADAPTIVE, bandwidth=0.1, value_eps=0.0, default_value=0.0,
-                    backup_sweeps=5, capacity=50_000, full_policy="overwrite_oldest"))
+                    backup_sweeps=5, capacity=150_000, full_policy="overwrite_oldest"))
 
 #: ``Hedger``'s defaults per ``envs.make`` name: ``hedger`` (``HedgerConfig.for_env``
 #: overrides), ``run`` (``RunConfig`` overrides), and optionally ``state_scale_factors`` (S,)
