@@ -23,6 +23,7 @@ steps, 95 % bands), and copies them to ``--docs`` when given.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import platform
@@ -96,9 +97,11 @@ def zoo(env_id: str) -> Dict[str, Any]:
 # One run
 # ------------------------------------------------------------------------------------------
 def _curve(learn: Callable[[int], None], evaluate: Callable[[int], Dict[str, float]],
-           start: int, budget: int) -> Dict[str, Any]:
+           start: int, budget: int, log: Optional[Callable[[str], None]] = None
+           ) -> Dict[str, Any]:
     """Learn to ``budget`` env steps in ``CURVE_POINTS`` pieces from ``start``, evaluating
-    after each -> {"steps", "returns", "final": {...}, "seconds" (learning only)}."""
+    after each -> {"steps", "returns", "final": {...}, "seconds" (learning only)}. ``log``
+    gets a line per evaluation (a full-budget run can take an hour)."""
     steps, returns, seconds = [], [], 0.0
     marks = np.linspace(start, budget, CURVE_POINTS + 1)[1:].astype(int)
     done = start
@@ -111,12 +114,16 @@ def _curve(learn: Callable[[int], None], evaluate: Callable[[int], Dict[str, flo
         ev = evaluate(FINAL_EPISODES if last else CURVE_EPISODES)
         steps.append(done)
         returns.append(ev["mean_return"])
+        if log is not None:
+            log(f"{done:,} / {budget:,} steps: greedy return {ev['mean_return']:.1f} "
+                f"({seconds:.0f} s learning)")
     return {"steps": steps, "returns": returns, "final": ev, "seconds": seconds}
 
 
-def run_hedger(env_id: str, seed: int, hand: bool, budget: int) -> Dict[str, Any]:
+def run_hedger(env_id: str, seed: int, hand: bool, budget: int,
+               log: Optional[Callable[[str], None]] = None) -> Dict[str, Any]:
     """``Hedger(env_id, seed=seed)`` (after ``HAND_EPISODES`` hand-policy episodes when
-    ``hand``) learning for ``budget`` env steps in all."""
+    ``hand``) learning for ``budget`` env steps in all; ``log``: as ``_curve``'s."""
     from hedger_jax.learner import Hedger
     from experiments.hand_policies import HAND_POLICIES
 
@@ -132,15 +139,16 @@ def run_hedger(env_id: str, seed: int, hand: bool, budget: int) -> Dict[str, Any
         out = model.evaluate(n_episodes=n)
         return {"mean_return": out["mean_return"], "mean_steps": out["mean_steps"]}
 
-    rec = _curve(model.learn, evaluate, demo_steps, budget)
+    rec = _curve(model.learn, evaluate, demo_steps, budget, log)
     rec["seconds"] += setup
     rec.update(demo_steps=demo_steps, memory_size=int(model.memory.size))
     return rec
 
 
-def run_sb3(env_id: str, seed: int, budget: int) -> Dict[str, Any]:
+def run_sb3(env_id: str, seed: int, budget: int,
+            log: Optional[Callable[[str], None]] = None) -> Dict[str, Any]:
     """SB3's DQN or SAC (``TASKS[env_id].sb3``) with the Zoo's hyperparameters for
-    ``budget`` env steps, one torch thread."""
+    ``budget`` env steps, one torch thread; ``log``: as ``_curve``'s."""
     import gymnasium as gym
     import torch
     from stable_baselines3 import DQN, SAC
@@ -157,19 +165,24 @@ def run_sb3(env_id: str, seed: int, budget: int) -> Dict[str, Any]:
         mean, _ = evaluate_policy(model, eval_env, n_eval_episodes=n, deterministic=True)
         return {"mean_return": float(mean)}
 
-    return _curve(lambda n: model.learn(n, reset_num_timesteps=False), evaluate, 0, budget)
+    return _curve(lambda n: model.learn(n, reset_num_timesteps=False), evaluate, 0, budget,
+                  log)
 
 
-def run_one(env_id: str, method: str, seed: int, quick: bool) -> Dict[str, Any]:
-    """One (task, method, seed) run -> its record."""
+def run_one(env_id: str, method: str, seed: int, quick: bool,
+            log: Optional[Callable[[str], None]] = None) -> Dict[str, Any]:
+    """One (task, method, seed) run -> its record; ``log`` gets its progress lines, each
+    prefixed with the run's name."""
     task = TASKS[env_id]
     scale = 4 if quick else 1
+    progress = None if log is None else (lambda line: log(f"{env_id} {method} seed {seed}: "
+                                                          f"{line}"))
     if method == "hedger":
-        rec = run_hedger(env_id, seed, False, task.budget // scale)
+        rec = run_hedger(env_id, seed, False, task.budget // scale, progress)
     elif method == "hedger-hand":
-        rec = run_hedger(env_id, seed, True, task.hand_budget // scale)
+        rec = run_hedger(env_id, seed, True, task.hand_budget // scale, progress)
     else:
-        rec = run_sb3(env_id, seed, task.budget // scale)
+        rec = run_sb3(env_id, seed, task.budget // scale, progress)
     rec.update(env_id=env_id, method=method, seed=seed, quick=quick)
     return rec
 
@@ -200,7 +213,8 @@ def load_records(out: str, quick: bool) -> List[Dict[str, Any]]:
 
 
 def sweep(tasks: Sequence[str], methods: Sequence[str], seeds: Sequence[int], out: str,
-          quick: bool, log: Callable[[str], None] = print) -> List[Dict[str, Any]]:
+          quick: bool, log: Callable[[str], None] = functools.partial(print, flush=True)
+          ) -> List[Dict[str, Any]]:
     """Every (task, method, seed) run not already on disk; returns all records."""
     records = []
     for env_id in tasks:
@@ -214,7 +228,7 @@ def sweep(tasks: Sequence[str], methods: Sequence[str], seeds: Sequence[int], ou
                     with open(path) as f:
                         records.append(json.load(f))
                     continue
-                rec = run_one(env_id, method, seed, quick)
+                rec = run_one(env_id, method, seed, quick, log)
                 atomic_write_json(path, rec)
                 records.append(rec)
                 log(f"{env_id} {method} seed {seed}: return {rec['final']['mean_return']:.1f} "

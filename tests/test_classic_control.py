@@ -110,3 +110,18 @@ def test_the_summary_s_intervals_and_table():
     text = classic_control.table(classic_control.summarize(recs), quick=False)
     assert "| Pendulum-v1 | 20,000 (5,000) | -200.0 ± 49.7 (3 seeds, 3 s) | not run |" in text
     assert text.count("\n") == 1 + len(classic_control.TASKS)
+
+
+def test_a_run_logs_each_evaluation_as_it_goes():
+    """The curve learns in ``CURVE_POINTS`` pieces from the start to the budget, evaluates
+    after each (the last on ``FINAL_EPISODES``) and logs one line per evaluation."""
+    learned, lines = [], []
+    returns = iter(range(classic_control.CURVE_POINTS))
+    rec = classic_control._curve(learned.append,
+                                 lambda n: {"mean_return": -10.0 * next(returns), "n": n},
+                                 100, 600, lines.append)
+    n = classic_control.CURVE_POINTS
+    assert sum(learned) == 500 and len(learned) == n
+    assert rec["steps"][-1] == 600 and rec["final"]["n"] == classic_control.FINAL_EPISODES
+    assert len(lines) == n and lines[-1].startswith(
+        f"600 / 600 steps: greedy return {-10.0 * (n - 1):.1f}")
