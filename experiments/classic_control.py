@@ -97,27 +97,34 @@ def zoo(env_id: str) -> Dict[str, Any]:
 # One run
 # ------------------------------------------------------------------------------------------
 def _curve(learn: Callable[[int], None], evaluate: Callable[[int], Dict[str, float]],
-           start: int, budget: int, log: Optional[Callable[[str], None]] = None
-           ) -> Dict[str, Any]:
+           start: int, budget: int, log: Optional[Callable[[str], None]] = None,
+           position: Optional[Callable[[], int]] = None) -> Dict[str, Any]:
     """Learn to ``budget`` env steps in ``CURVE_POINTS`` pieces from ``start``, evaluating
-    after each -> {"steps", "returns", "final": {...}, "seconds" (learning only)}. ``log``
-    gets a line per evaluation (a full-budget run can take an hour)."""
-    steps, returns, seconds = [], [], 0.0
+    after each -> {"steps" (the marks), "env_steps" (the steps actually taken), "returns",
+    "final": {...}, "seconds" (learning only)}.
+
+    ``position``: the env steps taken so far (with ``start``), for a learner that finishes
+    its episodes (``Hedger.learn``): each piece asks only for what is left to its mark, so
+    the run overshoots the budget by less than one episode, not one per piece. ``log`` gets
+    a line per evaluation (a full-budget run can take an hour)."""
+    steps, taken, returns, seconds = [], [], [], 0.0
     marks = np.linspace(start, budget, CURVE_POINTS + 1)[1:].astype(int)
     done = start
     for mark in marks:
         t0 = time.time()
-        learn(int(mark - done))
+        learn(max(int(mark - done), 0))
         seconds += time.time() - t0
-        done = int(mark)
+        done = int(mark) if position is None else int(position())
         last = mark == marks[-1]
         ev = evaluate(FINAL_EPISODES if last else CURVE_EPISODES)
-        steps.append(done)
+        steps.append(int(mark))
+        taken.append(done)
         returns.append(ev["mean_return"])
         if log is not None:
             log(f"{done:,} / {budget:,} steps: greedy return {ev['mean_return']:.1f} "
                 f"({seconds:.0f} s learning)")
-    return {"steps": steps, "returns": returns, "final": ev, "seconds": seconds}
+    return {"steps": steps, "env_steps": taken, "returns": returns, "final": ev,
+            "seconds": seconds}
 
 
 def run_hedger(env_id: str, seed: int, hand: bool, budget: int,
@@ -139,7 +146,8 @@ def run_hedger(env_id: str, seed: int, hand: bool, budget: int,
         out = model.evaluate(n_episodes=n)
         return {"mean_return": out["mean_return"], "mean_steps": out["mean_steps"]}
 
-    rec = _curve(model.learn, evaluate, demo_steps, budget, log)
+    rec = _curve(model.learn, evaluate, demo_steps, budget, log,
+                 lambda: demo_steps + model.num_timesteps)
     rec["seconds"] += setup
     rec.update(demo_steps=demo_steps, memory_size=int(model.memory.size))
     return rec

@@ -125,3 +125,19 @@ def test_a_run_logs_each_evaluation_as_it_goes():
     assert rec["steps"][-1] == 600 and rec["final"]["n"] == classic_control.FINAL_EPISODES
     assert len(lines) == n and lines[-1].startswith(
         f"600 / 600 steps: greedy return {-10.0 * (n - 1):.1f}")
+
+
+def test_a_learner_that_finishes_its_episodes_overshoots_the_budget_once():
+    """``Hedger.learn`` runs whole episodes: each piece asks only for the steps left to its
+    mark, so a learner overshooting every call by up to an episode (here 37 steps) ends
+    less than one episode past the budget, and the record says where it ended."""
+    at = [100]
+
+    def learn(n):
+        at[0] += n + 37 if n > 0 else 0
+
+    rec = classic_control._curve(learn, lambda n: {"mean_return": 0.0}, 100, 600,
+                                 position=lambda: at[0])
+    assert 600 <= at[0] <= 600 + 37 and rec["env_steps"][-1] == at[0]
+    assert rec["steps"][-1] == 600 and len(rec["steps"]) == classic_control.CURVE_POINTS
+    assert all(m <= e <= m + 37 for m, e in zip(rec["steps"], rec["env_steps"]))
