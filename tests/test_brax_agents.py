@@ -78,7 +78,10 @@ def _deterministic_actions(make_policy, params, env_name):
     return action
 
 
-@pytest.mark.parametrize("env_name", ["mountain_car_continuous", CORRIDOR])
+# Mountain car in the full suite: the corridor runs the same adapter path (BraxEnv,
+# wrap_for_training, brax_compat, _train) in the quick tier.
+@pytest.mark.parametrize("env_name", [pytest.param("mountain_car_continuous",
+                                                  marks=pytest.mark.full), CORRIDOR])
 def test_ppo_trains_end_to_end(env_name):
     """A few hundred environment steps of brax's PPO on the env: it trains on the env's
     observations (``_check_training_saw_the_env``), and the updates change the policy: its

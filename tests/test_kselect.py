@@ -221,6 +221,10 @@ print("TOPK", "TopK" in text, "KERNELS", len(calls), "REPLAY", len(outer))
 """
 
 
+# In the full suite (~9 s, a fresh process): a property of the compiled program that only
+# speed depends on (benchmarks/ measure it); the quick tier checks that the loop-kernel
+# insertion stays exact (test_index.py).
+@pytest.mark.full
 def test_training_replay_compiles_into_one_kernel_with_loop_kernels():
     """The point of kselect: with ``HEDGER_JAX_LOOP_KERNELS=1`` (a fresh process: XLA reads
     its flags once), the reverse replay of an episode over a one-level grid has no TopK

@@ -177,6 +177,9 @@ def test_invalid_transition_changes_nothing(data):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
 
 
+# In the full suite (~8 s op by op): test_lwr_predict.py runs the prediction it is built
+# on eagerly in the quick tier.
+@pytest.mark.full
 def test_unjitted_train_step_equals_jitted(data):
     S, A, V, mem = data
     tr = _tr([0.1, 0.2], [-0.03], 0.05, [0.12, 0.18])
