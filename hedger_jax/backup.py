@@ -110,11 +110,15 @@ def backup_targets(config: HedgerConfig, memory: Memory,
     p = resolve(config, params)
     actions = greedy_candidates(config)
 
-    def q_max(s):
-        values, known, _ = jax.vmap(lambda a: predict(config, memory, s, a, params))(actions)
-        return known_max(values, known, p.default_value)
+    n = actions.shape[0]
 
-    q_next = _chunked(memory, jax.vmap(q_max), lambda n: jnp.zeros((n,), jnp.float32))
+    def q_max(states):                    # (c, S) -> (c,): one flat batch (_candidate_queries)
+        s = jnp.repeat(states, n, axis=0)
+        a = jnp.tile(actions, (states.shape[0], 1))
+        values, known, _ = jax.vmap(lambda s1, a1: predict(config, memory, s1, a1, params))(s, a)
+        return known_max(values.reshape(-1, n), known.reshape(-1, n), p.default_value)
+
+    q_next = _chunked(memory, q_max, lambda c: jnp.zeros((c,), jnp.float32))
     return _targets(config, memory, q_next, p)
 
 
@@ -166,6 +170,17 @@ class BackupPlan(NamedTuple):
     values: jax.Array
 
 
+def _candidate_queries(config: HedgerConfig, states: jax.Array, actions: jax.Array,
+                       params) -> jax.Array:
+    """Scaled queries (c * n, d) of every state (c, S) with every candidate action (n, A),
+    state-major. One flat batch: the neighbour search's loops batch far better over one
+    vmapped axis than over two nested ones (5x faster plans of 12,000 Pendulum-v1 points)."""
+    n = actions.shape[0]
+    zs = jax.vmap(lambda s: scale_inputs(config, jnp.broadcast_to(s, (n,) + s.shape), actions,
+                                         params))(states)
+    return zs.reshape((-1, zs.shape[-1]))
+
+
 def _plan_query(config: HedgerConfig, memory: Memory, z: jax.Array, p: HedgerParams):
     """(indices, coef, mask, known) of one scaled query z (d,)."""
     nb = select_neighbours(config, memory, z, p)
@@ -192,10 +207,9 @@ def backup_plan(config: HedgerConfig, memory: Memory,
     n, k = acts.shape[0], config.max_neighbours
 
     def chunk_plan(states):
-        def one(s):
-            zs = scale_inputs(config, jnp.broadcast_to(s, (n,) + s.shape), acts, params)
-            return jax.vmap(lambda z: _plan_query(config, memory, z, p))(zs)
-        return jax.vmap(one)(states)
+        zs = _candidate_queries(config, states, acts, params)             # (c * n, d)
+        out = jax.vmap(lambda z: _plan_query(config, memory, z, p))(zs)
+        return jax.tree_util.tree_map(lambda x: x.reshape((-1, n) + x.shape[1:]), out)
 
     def zeros(c):
         return (jnp.zeros((c, n, k), jnp.int32), jnp.zeros((c, n, k), jnp.float32),
@@ -225,13 +239,36 @@ def plan_targets(config: HedgerConfig, memory: Memory, plan: BackupPlan,
     p = resolve(config, params)
     old = overwritten(memory, plan)
     values = jnp.where(old, plan.values, memory.values)
-    y = values[plan.indices]                                              # (cap, n, k)
-    fit = jnp.sum(jnp.where(plan.mask, plan.coef * y, 0.0), axis=-1)
-    fit = jax.vmap(jax.vmap(lambda f, yy, m: clip_to_neighbour_values(p, f, yy, m)))(
-        fit, y, plan.mask)
-    q_next = known_max(from_fit_space(p, fit), plan.known, p.default_value)
+
+    def q_max(indices, coef, mask, known):                # one chunk of rows -> (chunk,)
+        y = values[indices]                                               # (chunk, n, k)
+        fit = jnp.sum(jnp.where(mask, coef * y, 0.0), axis=-1)
+        fit = jax.vmap(jax.vmap(lambda f, yy, m: clip_to_neighbour_values(p, f, yy, m)))(
+            fit, y, mask)
+        return known_max(from_fit_space(p, fit), known, p.default_value)
+
+    q_next = _plan_rows(plan, q_max)
     y_next, use = _targets(config, memory, q_next, p)
     return y_next, use & plan.rows & ~old
+
+
+def _plan_rows(plan: BackupPlan, fn) -> jax.Array:
+    """``fn(indices, coef, mask, known)`` of a chunk of the plan's rows -> (chunk,), over
+    the rows it was built for only (the first ``plan.size``; the rest are 0): a sweep costs
+    what the stored points cost, not the capacity's (a ``lax.while_loop``; under vmap it
+    runs to the largest plan)."""
+    capacity = plan.rows.shape[-1]
+    chunk = min(BACKUP_CHUNK, capacity)
+
+    def body(i, out):
+        # The last chunk is moved back to end at capacity; its overlap is computed twice alike.
+        start = jnp.minimum(i * chunk, capacity - chunk)
+        rows = [jax.lax.dynamic_slice_in_dim(x, start, chunk)
+                for x in (plan.indices, plan.coef, plan.mask, plan.known)]
+        return jax.lax.dynamic_update_slice_in_dim(out, fn(*rows), start, 0)
+
+    n_chunks = (plan.size + chunk - 1) // chunk
+    return jax.lax.fori_loop(0, n_chunks, body, jnp.zeros((capacity,), jnp.float32))
 
 
 def backup_with_plan(config: HedgerConfig, memory: Memory, plan: BackupPlan,
