@@ -126,7 +126,9 @@ def _grid_known_max(cfg, mem, states):
 def test_targets_of_continuous_actions_use_the_search_grid_chunk_by_chunk():
     """Continuous actions: every target is r + gamma (the max of the known predictions over
     the search's initial grid) of its own point, also across chunk boundaries (a capacity
-    that is not a multiple of the chunk)."""
+    that is not a multiple of the chunk). A plan's sweep runs over its own rows chunk by
+    chunk and gives the same targets: with 64 rows a chunk (3 chunks for 160 points) and
+    with 159 (the second chunk moved back to end at the capacity, overlapping the first)."""
     from hedger_jax import backup
 
     cfg = _config(discrete_actions=None, capacity=300)
@@ -135,8 +137,17 @@ def test_targets_of_continuous_actions_use_the_search_grid_chunk_by_chunk():
     backup.BACKUP_CHUNK = 64
     try:
         y, use = jax.jit(functools.partial(backup_targets, cfg))(mem)
+        plans = {}
+        for chunk in (64, 159):
+            backup.BACKUP_CHUNK = chunk
+            plans[chunk] = jax.jit(lambda m: backup.plan_targets(
+                cfg, m, backup.backup_plan(cfg, m)))(mem)
     finally:
         backup.BACKUP_CHUNK = old
+    for chunk, (y_plan, use_plan) in plans.items():
+        np.testing.assert_array_equal(np.asarray(use_plan), np.asarray(use))
+        np.testing.assert_allclose(np.asarray(y_plan)[:N], np.asarray(y)[:N], rtol=1e-6,
+                                   atol=1e-6, err_msg=str(chunk))
     tr = jax.tree_util.tree_map(np.asarray, mem.transitions)
     q, _ = _grid_known_max(cfg, mem, tr.next_obs.T[:N])
     want = tr.reward[:N] + cfg.gamma * np.where(tr.terminated[:N], 0.0, q)
