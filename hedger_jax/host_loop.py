@@ -23,38 +23,67 @@ from hedger_jax.agent import RunConfig, explore_action, train_prefix
 from hedger_jax.backup import BackupPlan, backup_plan, backup_sweeps
 from hedger_jax.config import HedgerConfig
 from hedger_jax.cpu import jit as _jit
+from hedger_jax.data_bandwidth import with_data_bandwidth
 from hedger_jax.greedy import greedy_action
 from hedger_jax.memory import Memory, refresh_index
+from hedger_jax.params import HedgerParams
 from hedger_jax.progress import Chunk
 from hedger_jax.train import Transition
 
 __all__ = ["Backups", "EpisodeBuffer", "EpisodeResult", "run_episode", "explore_step", "greedy_step",
-           "replay_episode", "refresh", "seed_from_key", "episode_buffer",
+           "kernel_width", "Width", "replay_episode", "refresh", "seed_from_key", "episode_buffer",
            "training_episodes", "evaluate_greedy"]
 
 
 # ------------------------------------------------------------------------------------------
 # Jitted pieces (module level: compiled once per static settings)
 # ------------------------------------------------------------------------------------------
+class Width(NamedTuple):
+    """A kernel width read from a memory's data: bandwidth (), k_thresh () its radius."""
+
+    bandwidth: jax.Array
+    k_thresh: jax.Array
+
+
 def _step_key(key: jax.Array, t: jax.Array) -> jax.Array:
     """The acting key of step t of an episode keyed ``key`` (as ``agent.rollout`` derives it)."""
     return jax.random.fold_in(jax.random.fold_in(key, t), 0)
 
 
+@functools.partial(_jit, static_argnames=("config",))
+def kernel_width(memory: Memory, *, config: HedgerConfig) -> Optional[Width]:
+    """The memory's kernel width (``data_bandwidth.with_data_bandwidth``), None where the
+    config's is fixed. An episode reads it once and passes it to each step: the memory does
+    not change while the episode acts, and the reading costs more than a step's search."""
+    p = with_data_bandwidth(config, memory, None)
+    return None if p is None else Width(p.bandwidth, p.k_thresh)
+
+
+def _at_width(params: HedgerParams, width: Optional[Width]) -> Optional[HedgerParams]:
+    """params at a width read by ``kernel_width`` (None: the config's own settings)."""
+    if width is None:
+        return None
+    return params._replace(bandwidth=width.bandwidth, bandwidth_k=0, k_thresh=width.k_thresh)
+
+
 @functools.partial(_jit, static_argnames=("config", "run"))
-def explore_step(memory: Memory, obs: jax.Array, key: jax.Array, t: jax.Array, *,
-                 config: HedgerConfig, run: RunConfig) -> jax.Array:
+def explore_step(memory: Memory, obs: jax.Array, key: jax.Array, t: jax.Array,
+                 width: Optional[Width] = None, *, config: HedgerConfig,
+                 run: RunConfig) -> jax.Array:
     """The epsilon-greedy action value (A,) for obs (S,) at step t () of an episode keyed
-    ``key`` (``agent.explore_action``)."""
-    return explore_action(config, run, memory, obs, _step_key(key, t))
+    ``key`` (``agent.explore_action``); ``width``: the memory's ``kernel_width``, or None to
+    read it here."""
+    params = _at_width(HedgerParams.defaults(config, run), width)
+    return explore_action(config, run, memory, obs, _step_key(key, t), params=params)
 
 
 @functools.partial(_jit, static_argnames=("config",))
-def greedy_step(memory: Memory, obs: jax.Array, key: jax.Array, t: jax.Array, *,
-                config: HedgerConfig) -> jax.Array:
+def greedy_step(memory: Memory, obs: jax.Array, key: jax.Array, t: jax.Array,
+                width: Optional[Width] = None, *, config: HedgerConfig) -> jax.Array:
     """The greedy action value (A,) for obs (S,) at step t () of an episode keyed ``key``
-    (ties and "don't know" resolved with that step's key)."""
-    return greedy_action(config, memory, obs, _step_key(key, t))[0]
+    (ties and "don't know" resolved with that step's key); ``width`` as ``explore_step``'s."""
+    params = _at_width(HedgerParams.defaults(config), width)
+    return greedy_action(config, memory, obs, _step_key(key, t), params)[0]
 
 
 @functools.partial(_jit, static_argnames=("config",), donate_argnames=("memory",))
@@ -185,9 +214,9 @@ def training_episodes(memory: Memory, next_key: Callable[[], jax.Array], env: An
     done, backups = 0, Backups(config, run)
     while done < total:
         k_env, k_act = jax.random.split(next_key())
-        acting = memory
-        ep = run_episode(env, lambda obs, t: explore_step(acting, obs, k_act, t, config=config,
-                                                          run=run),
+        acting, width = memory, kernel_width(memory, config=config)
+        ep = run_episode(env, lambda obs, t: explore_step(acting, obs, k_act, t, width,
+                                                          config=config, run=run),
                          seed_from_key(k_env), buffer.length, buffer)
         memory = replay_episode(memory, buffer.transition(ep.length), jnp.int32(ep.length),
                                 config=config)
@@ -206,11 +235,12 @@ def evaluate_greedy(memory: Memory, key: jax.Array, env: Any, *, config: HedgerC
     that *terminated*), and "success_rate" (the same fraction) only where termination is
     the task's goal (``env.goal_on_termination``)}."""
     memory = refresh(memory, config=config)
+    width = kernel_width(memory, config=config)
     results = []
     for k in np.asarray(jax.random.split(key, n_episodes)):
         k_env, k_act = jax.random.split(jnp.asarray(k))
         results.append(run_episode(
-            env, lambda obs, t: greedy_step(memory, obs, k_act, t, config=config),
+            env, lambda obs, t: greedy_step(memory, obs, k_act, t, width, config=config),
             seed_from_key(k_env), max_steps))
     out = {"mean_steps": float(np.mean([r.length for r in results])),
            "mean_return": float(np.mean([r.ret for r in results])),

@@ -38,6 +38,9 @@ from hedger_jax.validation import expect
 FLAG_FULL = 1
 #: ``Memory.flags`` bit: a NaN/inf value or point was refused.
 FLAG_NONFINITE = 2
+#: Brute force reads a memory of more than two blocks' capacity this many slots at a time,
+#: up to its stored points only.
+BRUTE_BLOCK = 2048
 
 
 class StoredTransitions(NamedTuple):
@@ -183,13 +186,40 @@ def select_neighbours(config: HedgerConfig, memory: Memory, z: jax.Array,
             jax.tree_util.tree_map(jax.lax.stop_gradient, index), jax.lax.stop_gradient(z),
             k_thresh)
         return _pad_neighbours(config, idx, d2_sel, mask)
-    d2 = squared_distances(memory.points, z)
-    d2 = jnp.where(valid_mask(memory), d2, jnp.inf)
     k = min(config.max_neighbours, capacity)
-    neg_d2, idx = jax.lax.top_k(-d2, k)
-    d2_sel = -neg_d2
+    if capacity > 2 * BRUTE_BLOCK:
+        # Stop-gradient inputs, as above: the fit recomputes the distances, and reverse-mode
+        # autodiff has no rule for the loop's traced trip count.
+        d2_sel, idx = _nearest_in_blocks(jax.lax.stop_gradient(memory.points), memory.size,
+                                         jax.lax.stop_gradient(z), k)
+    else:
+        d2 = jnp.where(valid_mask(memory), squared_distances(memory.points, z), jnp.inf)
+        neg_d2, idx = jax.lax.top_k(-d2, k)
+        d2_sel = -neg_d2
     mask = d2_sel <= jnp.float32(k_thresh) ** 2
     return _pad_neighbours(config, idx, d2_sel, mask)
+
+
+def _nearest_in_blocks(points: jax.Array, size: jax.Array, z: jax.Array, k: int):
+    """The k nearest stored points to z (d,) among slots [0, size) of points (d, capacity),
+    read ``BRUTE_BLOCK`` slots at a time up to ``size`` only, so a search costs what the
+    stored points cost, not the capacity's -> (squared distances (k,) ascending, inf past
+    the stored points; slots int32 (k,)). The same set as one ``lax.top_k`` over every slot:
+    the running best precede each block's slots, so ties go to the lower slot either way."""
+    capacity = points.shape[-1]
+
+    def block(b, best):
+        best_d2, best_idx = best
+        start = jnp.minimum(b * BRUTE_BLOCK, capacity - BRUTE_BLOCK)   # the last block clamped
+        slot = start + jnp.arange(BRUTE_BLOCK, dtype=jnp.int32)
+        d2 = squared_distances(jax.lax.dynamic_slice_in_dim(points, start, BRUTE_BLOCK, 1), z)
+        # A clamped block re-reads slots the previous one had: each slot counts once.
+        d2 = jnp.where((slot < size) & (slot >= b * BRUTE_BLOCK), d2, jnp.inf)
+        neg_d2, j = jax.lax.top_k(-jnp.concatenate([best_d2, d2]), k)
+        return -neg_d2, jnp.concatenate([best_idx, slot])[j]
+
+    init = (jnp.full((k,), jnp.inf, jnp.float32), jnp.zeros((k,), jnp.int32))
+    return jax.lax.fori_loop(0, (size + BRUTE_BLOCK - 1) // BRUTE_BLOCK, block, init)
 
 
 def _pad_neighbours(config: HedgerConfig, idx, d2_sel, mask) -> Neighbours:

@@ -283,3 +283,27 @@ def test_import_pulls_no_env_module():
     res = subprocess.run([sys.executable, "-c", code], cwd=repo, capture_output=True,
                          text=True, timeout=120)
     assert res.returncode == 0 and "ok" in res.stdout, res.stderr[-2000:]
+
+
+def test_an_episode_reads_the_kernel_width_once(car):
+    """The host loop reads the data-chosen kernel width once per episode (``kernel_width``)
+    and passes it to each step: the epsilon-greedy and greedy actions equal those of steps
+    that read it from the memory themselves, and the width is the memory's
+    ``data_bandwidth``; with a fixed width (the paper's preset) there is nothing to pass."""
+    import jax
+    from hedger_jax.data_bandwidth import data_bandwidth
+    from hedger_jax.host_loop import explore_step, greedy_step, kernel_width
+
+    assert kernel_width(car.memory, config=car.config) is None
+    cfg, run, mem = car.config.replace(bandwidth_k=4), car.run_config, car.memory
+    width = kernel_width(mem, config=cfg)
+    assert float(width.bandwidth) == float(data_bandwidth(cfg, mem))
+    assert float(width.bandwidth) != cfg.bandwidth
+    rng = np.random.default_rng(0)
+    obs = rng.uniform([-1.2, -0.07], [0.6, 0.07], (16, 2)).astype(np.float32)
+    key = jax.random.PRNGKey(5)
+    for t, o in enumerate(obs):
+        for step, kw in ((explore_step, dict(config=cfg, run=run)),
+                         (greedy_step, dict(config=cfg))):
+            np.testing.assert_array_equal(np.asarray(step(mem, o, key, t, width, **kw)),
+                                          np.asarray(step(mem, o, key, t, **kw)))

@@ -213,3 +213,68 @@ def test_neighbours_come_in_canonical_order_by_slot(kind):
         expect = within[np.argsort(ref[within], kind="stable")][:8]
         assert set(idx[:n].tolist()) == set(expect.tolist())
         np.testing.assert_allclose(d2[:n], ref[idx[:n]], rtol=1e-5, atol=1e-7)
+
+
+def _lattice_memory(cfg, n, rng):
+    """A memory of cfg holding n points on a 1/64 lattice in [0, 1]^3 (exact float32 squared
+    distances, so many ties) with values of a smooth function, its other slots empty."""
+    from hedger_jax.memory import init_memory as _init
+    pts = np.zeros((3, cfg.capacity), np.float32)
+    pts[:, :n] = rng.integers(0, 65, (3, n)) / np.float32(64)
+    vals = np.zeros(cfg.capacity, np.float32)
+    vals[:n] = np.sin(3 * pts[0, :n]) + pts[1, :n] - pts[2, :n] ** 2
+    return _init(cfg)._replace(points=jnp.asarray(pts), values=jnp.asarray(vals),
+                               size=jnp.int32(n), head=jnp.int32(n % cfg.capacity))
+
+
+def test_brute_force_in_blocks_finds_the_nearest_stored_points():
+    """A brute-force memory larger than two blocks is read block by block up to its stored
+    points (``_nearest_in_blocks``): K equals a float64 NumPy brute force's (the nearest
+    ``max_neighbours`` within the threshold, ties to the lower slot) at sizes of 0, part of
+    one block, exactly one, two, and three with the last block moved back over the second;
+    the same under vmap over memories of different sizes; and predictions, with their
+    gradients w.r.t. the query and the stored values, equal bit for bit those of a memory
+    small enough for the one-pass search holding the same points."""
+    from hedger_jax.memory import BRUTE_BLOCK, select_neighbours
+    from hedger_jax.prediction import predict_scaled
+    cap = 2 * BRUTE_BLOCK + 904
+    cfg = HedgerConfig(2, 1, capacity=cap, bandwidth=0.03, max_neighbours=8,
+                       neighbour_index="brute")
+    rng = np.random.default_rng(11)
+    select = jax.jit(jax.vmap(lambda m, z: select_neighbours(cfg, m, z), in_axes=(None, 0)))
+    zs = (rng.integers(0, 65, (24, 3)) / np.float32(64)).astype(np.float32)
+    zs[:4] += np.float32(1 / 128)                     # between lattice points: more ties
+    mems = {}
+    for n in (0, 700, BRUTE_BLOCK, 3000, cap - 300, cap):
+        m = mems[n] = _lattice_memory(cfg, n, rng)
+        nb = select(m, jnp.asarray(zs))
+        pts = np.asarray(m.points, np.float64)[:, :n]
+        for q, idx, mask in zip(zs, np.asarray(nb.indices), np.asarray(nb.mask)):
+            d2 = np.sum((pts - q.astype(np.float64)[:, None]) ** 2, axis=0)
+            order = np.lexsort((np.arange(n), d2))[:8]          # by distance, then slot
+            expect = np.sort(order[d2[order] <= cfg.k_thresh ** 2])
+            np.testing.assert_array_equal(idx[mask], expect, err_msg=f"size {n}")
+    both = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), mems[3000], mems[cap - 300])
+    vsel = jax.jit(jax.vmap(lambda m: jax.vmap(lambda z: select_neighbours(cfg, m, z))(
+        jnp.asarray(zs))))(both)
+    for i, n in enumerate((3000, cap - 300)):
+        alone = select(mems[n], jnp.asarray(zs))
+        np.testing.assert_array_equal(np.asarray(vsel.indices[i])[np.asarray(alone.mask)],
+                                      np.asarray(alone.indices)[np.asarray(alone.mask)])
+    small = HedgerConfig(2, 1, capacity=2 * BRUTE_BLOCK, bandwidth=0.03, max_neighbours=8,
+                         neighbour_index="brute")
+    m_small = mems[3000]._replace(points=mems[3000].points[:, :small.capacity],
+                                  values=mems[3000].values[:small.capacity])
+
+    def value_and_grads(c, m):
+        def value(z, values):
+            return predict_scaled(c, m._replace(values=values), z).value
+        return jax.jit(jax.vmap(jax.value_and_grad(value, argnums=(0, 1)),
+                                in_axes=(0, None)))(jnp.asarray(zs), m.values)
+
+    (v_big, (gz_big, gv_big)), (v_small, (gz_small, gv_small)) = (
+        value_and_grads(cfg, mems[3000]), value_and_grads(small, m_small))
+    assert np.isfinite(np.asarray(v_big)).all() and np.abs(np.asarray(gz_big)).sum() > 0
+    np.testing.assert_array_equal(np.asarray(v_big), np.asarray(v_small))
+    np.testing.assert_array_equal(np.asarray(gz_big), np.asarray(gz_small))
+    np.testing.assert_array_equal(np.asarray(gv_big)[:, :small.capacity], np.asarray(gv_small))
