@@ -7,6 +7,9 @@
   several tests (or both workers) build is compiled once. It lives in a temporary folder made
   for this run and removed at its end, so no run reads another's programs.
 * Tests marked ``full`` run only with HEDGER_JAX_FULL_TESTS=1 (docs/testing.md).
+* The quick tier compiles with LLVM's -O1 (``--xla_backend_optimization_level=1``, unless
+  XLA_FLAGS names a level): compiling is most of its time, and -O1 compiles about a third
+  faster; the full tier keeps XLA's default, what users run. Subprocesses inherit the flag.
 """
 import os
 import shutil
@@ -17,6 +20,10 @@ import pytest
 
 from hedger_jax import cpu
 
+_OPT_LEVEL = "--xla_backend_optimization_level"
+_FLAGS = os.environ.get("XLA_FLAGS", "")
+if not os.environ.get("HEDGER_JAX_FULL_TESTS") and _OPT_LEVEL not in _FLAGS:
+    os.environ["XLA_FLAGS"] = (_FLAGS + f" {_OPT_LEVEL}=1").strip()
 cpu.configure()
 
 _CACHE_ENV = "HEDGER_JAX_TEST_XLA_CACHE"

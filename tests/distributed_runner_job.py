@@ -22,9 +22,14 @@ class Stop(Exception):
 
 def main(out: str, stop_after: int = -1) -> None:
     cpu.configure()
+    import jax
+
     if distributed.detected_cluster():
         distributed.initialize(heartbeat_timeout_s=10)
-    import jax
+    elif os.environ.get("HEDGER_JAX_TEST_XLA_CACHE"):
+        # One process: the suite's compilation cache (the resumed and the uninterrupted run
+        # compile the same programs).
+        jax.config.update("jax_compilation_cache_dir", os.environ["HEDGER_JAX_TEST_XLA_CACHE"])
 
     from experiments import runner
     from test_experiments import TINY
