@@ -155,24 +155,37 @@ class _Constant:
 
 
 @functools.lru_cache(maxsize=32)
-def _with_constants(train_fn: Callable, treedef: Any, constants: Tuple) -> Callable:
-    """``(key, varying leaves) -> train_fn(key, params)``: the params rebuilt from the leaves
-    that vary between members and ``constants`` ((leaf index, _Constant), ...), the leaves
-    every member shares, which enter the program as constants."""
+def with_shared_settings(fn: Callable, treedef: Any, constants: Tuple) -> Callable:
+    """``fn(x, params)`` as ``g(x, varying leaves)``: the params rebuilt from the leaves that
+    vary between members and ``constants`` ((leaf index, _Constant), ...; ``shared_settings``),
+    the leaves every member shares, which enter the program as constants. Cached, so equal
+    arguments give the same g (and reuse its compiled programs)."""
     fixed = {i: c.value for i, c in constants}
 
-    def fn(key, varying):
+    def g(x, varying):
         it = iter(varying)
         leaves = [fixed[i] if i in fixed else next(it) for i in range(treedef.num_leaves)]
-        return train_fn(key, jax.tree_util.tree_unflatten(treedef, leaves))
+        return fn(x, jax.tree_util.tree_unflatten(treedef, leaves))
 
-    return fn
+    return g
 
 
 def _same_for_all(x: np.ndarray) -> bool:
     """Whether every member (leading axis) of x holds the same value (NaN equal to NaN)."""
     return bool(np.array_equal(x, np.broadcast_to(x[:1], x.shape),
                                equal_nan=np.issubdtype(x.dtype, np.inexact)))
+
+
+def shared_settings(params: Any):
+    """(treedef, constants, varying) of params, a pytree whose leaves have a leading member
+    axis: constants ((leaf index, value), ...) hold the leaves every member shares, in the
+    form that ``with_shared_settings`` bakes into a program; varying lists the other leaves'
+    indices, the program's inputs."""
+    leaves, treedef = jax.tree_util.tree_flatten(params)
+    leaves = [np.asarray(leaf) for leaf in leaves]
+    shared = [_same_for_all(x) for x in leaves]
+    constants = tuple((i, _Constant(x[0])) for i, (x, c) in enumerate(zip(leaves, shared)) if c)
+    return treedef, constants, [i for i, c in enumerate(shared) if not c]
 
 
 def prepare_sweep(train_fn: Callable, keys: Any, params: Any, n_devices: int):
@@ -197,19 +210,16 @@ def prepare_sweep(train_fn: Callable, keys: Any, params: Any, n_devices: int):
         keys = jax.random.key_data(keys)
     args = (np.asarray(keys),)
     if params is not None:
-        flat, treedef = jax.tree_util.tree_flatten_with_path(params)
-        for path, leaf in flat:
+        for path, leaf in jax.tree_util.tree_flatten_with_path(params)[0]:
             shape = np.shape(leaf)
             if not shape or shape[0] != n:
                 raise ValueError(f"params{jax.tree_util.keystr(path)}: every leaf needs the "
                                  f"leading member axis of length {n} (as the keys), got "
                                  f"shape {shape}")
-        leaves = [np.asarray(leaf) for _, leaf in flat]
-        shared = [_same_for_all(x) for x in leaves]
-        constants = tuple((i, _Constant(x[0])) for i, (x, c) in enumerate(zip(leaves, shared))
-                          if c)
-        fn = _with_constants(fn, jax.tree_util.tree_structure(params), constants)
-        args += ([x for x, c in zip(leaves, shared) if not c],)
+        treedef, constants, varying = shared_settings(params)
+        fn = with_shared_settings(fn, treedef, constants)
+        leaves = jax.tree_util.tree_leaves(params)
+        args += ([np.asarray(leaves[i]) for i in varying],)
     total = n + (-n) % n_devices
     order = member_order(total, n_devices)
     args = jax.tree_util.tree_map(lambda x: x[order], _pad_members(args, n, total))

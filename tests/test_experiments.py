@@ -150,6 +150,36 @@ def test_seed_mode_map_runs_each_seed_alone(tmp_path):
         runner.resolve_seed_mode("pmap")
 
 
+def test_a_sweep_program_takes_only_the_settings_its_variants_vary(tmp_path, monkeypatch):
+    """run_sweep bakes the settings that every variant shares into its programs as constants
+    (a program with every setting traced compiles about twice as long): with two variants
+    that differ in bandwidth, it (with the radius it sets) is the programs' only input, and each
+    record holds its own variant's settings."""
+    import dataclasses
+
+    from hedger_jax.params import FIELDS
+
+    varying = []
+    real = runner.with_shared_settings
+
+    def spy(fn, treedef, constants):
+        fixed = {i for i, _ in constants}
+        varying.append([FIELDS[i] for i in range(treedef.num_leaves) if i not in fixed])
+        return real(fn, treedef, constants)
+
+    monkeypatch.setattr(runner, "with_shared_settings", spy)
+    runner.compiled_group.cache_clear()
+    narrow, wide = (dataclasses.replace(TINY, label=f"h {h}", params=_items(dict(bandwidth=h)))
+                    for h in (0.03, 0.2))
+    records = runner.run_sweep([narrow, wide], [0, 1], str(tmp_path), progress=False,
+                               seed_mode="map")
+    # init and run_block; the neighbour radius k_thresh follows the bandwidth.
+    assert varying == [["bandwidth", "k_thresh"]] * 2
+    assert [r["params"]["bandwidth"] for r in records] == pytest.approx([0.03, 0.2])
+    runner.run_variant(wide, [0, 1], str(tmp_path / "alone"), progress=False, seed_mode="map")
+    assert varying[2:] == [[], []]                       # one variant: every setting shared
+
+
 _TWO_DEVICES = """
 import sys, numpy as np, jax, pytest
 sys.path.insert(0, {tests!r})
