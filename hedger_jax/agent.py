@@ -32,7 +32,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from hedger_jax import bursts
 from hedger_jax.backup import backup_sweeps
+from hedger_jax.bursts import Burst
 from hedger_jax.config import HedgerConfig
 from hedger_jax.data_bandwidth import with_data_bandwidth
 from hedger_jax.greedy import (greedy_action, greedy_action_from_uniform, greedy_candidates,
@@ -125,9 +127,20 @@ def explore_action(config: HedgerConfig, run: RunConfig, memory: Memory, obs: ja
     ``greedy_only`` (bool (), may be traced): instead, exactly ``greedy_action(config, memory,
     obs, key, params)[0]``, so one copy of the greedy search serves training and evaluation
     (``make_train``'s block). params: ``HedgerParams`` (epsilon, noise_std and HEDGER's
-    settings), or None for the configs' values.
+    settings), or None for the configs' values. Under ``exploration="bursts"``: the first
+    step of a burst (its random action), none carried on (``explore_action_burst`` carries).
     """
-    return _explore(config, run, memory, obs, key, greedy_only, False, params)
+    return _first_step(_explore(config, run, memory, obs, key, greedy_only, False, params,
+                                _no_burst(config, run)), run)
+
+
+def explore_action_burst(config: HedgerConfig, run: RunConfig, memory: Memory, obs: jax.Array,
+                         key: jax.Array, burst: Burst, greedy_only: Any = False,
+                         params: Optional[HedgerParams] = None):
+    """``explore_action`` under ``exploration="bursts"`` (``hedger_jax.bursts``), carrying
+    the episode's burst: -> (action (A,), the next step's ``Burst``). A held step searches
+    nothing; ``greedy_only`` ignores (and ends) a burst."""
+    return _explore(config, run, memory, obs, key, greedy_only, False, params, burst)
 
 
 def explore_action_recorded(config: HedgerConfig, run: RunConfig, memory: Memory,
@@ -136,16 +149,35 @@ def explore_action_recorded(config: HedgerConfig, run: RunConfig, memory: Memory
     """``explore_action`` and the neighbour sets its greedy search found, for the replay of
     the episode (``rollout`` records them, ``train_prefix`` reuses them):
     -> (action (A,), ``replay_cache.StepNeighbours``)."""
-    return _explore(config, run, memory, obs, key, greedy_only, True, params)
+    return _first_step(_explore(config, run, memory, obs, key, greedy_only, True, params,
+                                _no_burst(config, run)), run)
+
+
+def _no_burst(config: HedgerConfig, run: RunConfig) -> Optional[Burst]:
+    """No burst under way where the run explores in bursts, else None."""
+    return bursts.start(config) if run.exploration == "bursts" else None
+
+
+def _first_step(out, run: RunConfig):
+    """``_explore``'s output without the next step's ``Burst`` (if it returned one)."""
+    if run.exploration != "bursts":
+        return out
+    return out[:-1] if len(out) > 2 else out[0]
 
 
 def _explore(config: HedgerConfig, run: RunConfig, memory: Memory, obs: jax.Array,
-             key: jax.Array, greedy_only: Any, record: bool, params=None):
-    """``explore_action`` (record False) or ``explore_action_recorded`` (record True)."""
+             key: jax.Array, greedy_only: Any, record: bool, params=None,
+             burst: Optional[Burst] = None):
+    """``explore_action`` (record False) or ``explore_action_recorded`` (record True); with
+    a ``burst`` (``exploration="bursts"``), the next step's ``Burst`` is returned last."""
     p = run_params(config, run, params)
     a_dim = config.action_dim
     n_greedy = greedy_draws(config)
-    n_explore = 2 * a_dim if run.exploration == "gaussian" else a_dim
+    # gaussian: Box-Muller pairs; bursts: the random action and the burst's length.
+    n_explore = {"gaussian": 2 * a_dim, "bursts": a_dim + 1}.get(run.exploration, a_dim)
+    if (run.exploration == "bursts") != (burst is not None):
+        raise ValueError("exploration='bursts' acts with a Burst carried from step to step "
+                         "(explore_action_burst, training_act); other explorations take none")
     u = jax.random.uniform(key, (1 + n_greedy + n_explore,))
     ue = u[1 + n_greedy:]
     u_greedy = u[1:1 + n_greedy]
@@ -164,12 +196,15 @@ def _explore(config: HedgerConfig, run: RunConfig, memory: Memory, obs: jax.Arra
                                       jnp.ones((), bool), sets.has_chosen)
 
     def explore(_):
-        action = _random_action_from_uniform(config, ue)
+        action = _random_action_from_uniform(config, ue[:a_dim])
         return (action, missing(config, n_candidates, memory.size)) if record else action
 
     if run.exploration == "random":
         # A random exploratory step needs no greedy search (under vmap both branches run).
         return jax.lax.cond(explore_now, explore, greedy, None)
+    if run.exploration == "bursts":
+        return _burst_step(config, memory, burst, explore_now, greedy_only, ue[a_dim],
+                           explore, greedy, record, n_candidates)
     out = greedy(None)
     action = out[0] if record else out
     low = jnp.asarray(config.action_low, jnp.float32)
@@ -183,26 +218,54 @@ def _explore(config: HedgerConfig, run: RunConfig, memory: Memory, obs: jax.Arra
     return action, out[1]._replace(has_chosen=out[1].has_chosen & ~explore_now)
 
 
+def _burst_step(config: HedgerConfig, memory: Memory, burst: Burst, explore_now: jax.Array,
+                greedy_only: Any, u_length: jax.Array, explore, greedy, record: bool,
+                n_candidates: int):
+    """One step of epsilon-greedy with bursts: the held action while a burst lasts, else
+    ``explore`` (which starts a burst of ``bursts.duration(u_length)`` steps) or ``greedy``.
+    -> (action, [record,] next Burst)."""
+    held = burst.left > 0
+    if greedy_only is not False:
+        held = held & ~jnp.asarray(greedy_only, bool)
+
+    def hold(_):
+        return (burst.action, missing(config, n_candidates, memory.size)) if record \
+            else burst.action
+
+    out = jax.lax.switch(jnp.where(held, 0, jnp.where(explore_now, 1, 2)),
+                         [hold, explore, greedy], None)
+    action = out[0] if record else out
+    length = jnp.where(explore_now, bursts.duration(u_length), 1)
+    nxt = Burst(action, jnp.where(held, burst.left, length) - 1)
+    return (action, out[1], nxt) if record else (action, nxt)
+
+
 def training_act(config: HedgerConfig, run: RunConfig, memory: Memory, greedy_only: Any = False,
                  params: Optional[HedgerParams] = None):
     """The rollout's ``act(key, obs, act_state)`` of phase two: ``explore_action`` (reading,
-    not carrying, the memory), with the greedy searches' neighbour sets recorded for
+    not carrying, the memory; under ``exploration="bursts"`` act_state is the episode's
+    ``Burst``, its start the attribute ``initial_state``), with the greedy searches' neighbour sets recorded for
     ``train_prefix`` when neighbours are reused (``run.reuse_neighbours``, and only under
     ``full_policy="error"``). params: ``HedgerParams``, or None for the configs' values."""
     params = with_data_bandwidth(config, memory, params)     # once per rollout
     reuse = run.reuse_neighbours
     if reuse is None:
         reuse = config.capacity >= REUSE_MIN_CAPACITY
+    carried = run.exploration == "bursts"     # act_state: the episode's Burst
     if reuse and replay_cache_usable(config):
         def act(key, obs, act_state):
-            action, record = explore_action_recorded(config, run, memory, obs, key, greedy_only,
-                                                     params)
-            return action, act_state, record
+            out = _explore(config, run, memory, obs, key, greedy_only, True, params,
+                           act_state if carried else None)
+            return out[0], (out[2] if carried else act_state), out[1]
 
         act.record_like = record_shapes(config, greedy_candidates(config).shape[0])
     else:
         def act(key, obs, act_state):
-            return explore_action(config, run, memory, obs, key, greedy_only, params), act_state
+            out = _explore(config, run, memory, obs, key, greedy_only, False, params,
+                           act_state if carried else None)
+            return (out[0], out[1]) if carried else (out, act_state)
+    if carried:
+        act.initial_state = bursts.start(config)
     return act
 
 
@@ -215,6 +278,7 @@ def rollout(env: Any, env_params: Any, act, key: jax.Array, max_steps: int,
     max_steps, length int32 ()). An ``act`` with a ``record_like`` attribute (a pytree of
     ``jax.ShapeDtypeStruct``, e.g. ``training_act``'s) returns (a, act_state, record) and has
     its records kept too: then (Transition, length, records with leading axis max_steps).
+    ``act_state`` None: the act's ``initial_state`` attribute where it has one.
     """
     buf, t, _, records = _rollout(env, env_params, act, key, max_steps, obs0, state0,
                                   act_state)
@@ -228,6 +292,8 @@ def _rollout(env: Any, env_params: Any, act, key: jax.Array, max_steps: int,
     whether the episode reached its goal, as ``evaluate_policy`` counts it, records or
     None)."""
     limit = max_steps if limit is None else limit
+    if act_state is None:
+        act_state = getattr(act, "initial_state", None)
     obs_dim = obs0.shape[-1]
     a_dim = env.action_space.action_dim
     like = getattr(act, "record_like", None)      # known without tracing act once more

@@ -1,7 +1,7 @@
 """The host loop: ``Hedger`` on a Gymnasium env that is not one of the project's JAX envs.
 
 Episodes run on the host (``run_episode``): one jitted epsilon-greedy action per step
-(``explore_step``), the episode's transitions in NumPy buffers (``EpisodeBuffer``), and after
+(``explore_step``, through an episode's ``Explorer``), the episode's transitions in NumPy buffers (``EpisodeBuffer``), and after
 the episode a jitted reverse replay of the buffer padded to the episode cap
 (``replay_episode``: compiled once per config and cap) followed by the neighbour index's
 refresh. A transition's ``terminated`` is Gymnasium's ``terminated`` only: a truncation (the
@@ -19,7 +19,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from hedger_jax.agent import RunConfig, explore_action, train_prefix
+from hedger_jax import bursts
+from hedger_jax.agent import RunConfig, explore_action, explore_action_burst, train_prefix
+from hedger_jax.bursts import Burst
 from hedger_jax.backup import BackupPlan, backup_plan, backup_sweeps
 from hedger_jax.config import HedgerConfig
 from hedger_jax.cpu import jit as _jit
@@ -30,8 +32,8 @@ from hedger_jax.params import HedgerParams
 from hedger_jax.progress import Chunk
 from hedger_jax.train import Transition
 
-__all__ = ["Backups", "EpisodeBuffer", "EpisodeResult", "run_episode", "explore_step", "greedy_step",
-           "kernel_width", "Width", "replay_episode", "refresh", "seed_from_key", "episode_buffer",
+__all__ = ["Backups", "EpisodeBuffer", "EpisodeResult", "Explorer", "run_episode", "explore_step",
+           "greedy_step", "kernel_width", "Width", "replay_episode", "refresh", "seed_from_key", "episode_buffer",
            "training_episodes", "evaluate_greedy"]
 
 
@@ -68,13 +70,37 @@ def _at_width(params: HedgerParams, width: Optional[Width]) -> Optional[HedgerPa
 
 @functools.partial(_jit, static_argnames=("config", "run"))
 def explore_step(memory: Memory, obs: jax.Array, key: jax.Array, t: jax.Array,
-                 width: Optional[Width] = None, *, config: HedgerConfig,
-                 run: RunConfig) -> jax.Array:
+                 width: Optional[Width] = None, burst: Optional[Burst] = None, *,
+                 config: HedgerConfig, run: RunConfig):
     """The epsilon-greedy action value (A,) for obs (S,) at step t () of an episode keyed
     ``key`` (``agent.explore_action``); ``width``: the memory's ``kernel_width``, or None to
-    read it here."""
+    read it here. With a ``burst`` (``exploration="bursts"``): -> (action, the next step's
+    ``Burst``) (``agent.explore_action_burst``)."""
     params = _at_width(HedgerParams.defaults(config, run), width)
-    return explore_action(config, run, memory, obs, _step_key(key, t), params=params)
+    if burst is None:
+        return explore_action(config, run, memory, obs, _step_key(key, t), params=params)
+    return explore_action_burst(config, run, memory, obs, _step_key(key, t), burst,
+                                params=params)
+
+
+class Explorer:
+    """The phase-two policy of one episode, ``act(obs, t)`` for ``run_episode``:
+    ``explore_step`` with the memory's width read once, and the episode's ``Burst`` carried
+    from step to step under ``exploration="bursts"``."""
+
+    def __init__(self, memory: Memory, key: jax.Array, *, config: HedgerConfig,
+                 run: RunConfig):
+        self.memory, self.key, self.config, self.run = memory, key, config, run
+        self.width = kernel_width(memory, config=config)
+        self.burst = bursts.start(config) if run.exploration == "bursts" else None
+
+    def __call__(self, obs: np.ndarray, t: int) -> jax.Array:
+        out = explore_step(self.memory, obs, self.key, t, self.width, self.burst,
+                           config=self.config, run=self.run)
+        if self.burst is None:
+            return out
+        action, self.burst = out
+        return action
 
 
 @functools.partial(_jit, static_argnames=("config",))
@@ -214,9 +240,7 @@ def training_episodes(memory: Memory, next_key: Callable[[], jax.Array], env: An
     done, backups = 0, Backups(config, run)
     while done < total:
         k_env, k_act = jax.random.split(next_key())
-        acting, width = memory, kernel_width(memory, config=config)
-        ep = run_episode(env, lambda obs, t: explore_step(acting, obs, k_act, t, width,
-                                                          config=config, run=run),
+        ep = run_episode(env, Explorer(memory, k_act, config=config, run=run),
                          seed_from_key(k_env), buffer.length, buffer)
         memory = replay_episode(memory, buffer.transition(ep.length), jnp.int32(ep.length),
                                 config=config)

@@ -15,7 +15,7 @@ from hedger_jax.settings import (TRACED_KINDS, choice, fields_of, first_failure,
                                  python_value, reject_traced, setting, spec)
 
 #: ``RunConfig.exploration`` choices.
-EXPLORATION = ("random", "gaussian")
+EXPLORATION = ("random", "gaussian", "bursts")
 
 
 def _fraction(name, value, owner):
@@ -33,7 +33,11 @@ class RunConfig:
     epsilon: probability of an exploratory action (traced).
     exploration: "random" (a uniformly random action, the mountain-car protocol) or
       "gaussian" (the greedy action plus N(0, noise_std) noise, clipped to the bounds; the
-      corridor protocol). noise_std is traced.
+      corridor protocol). noise_std is traced. Or "bursts" (beyond the paper;
+      ``hedger_jax.bursts``): an exploratory step holds its random action for a
+      heavy-tailed number of steps; the default for a continuous-action Gymnasium task
+      (``hedger_jax.task_settings``). A single-step ``predict(deterministic=False)`` starts
+      no burst: it is epsilon-greedy with one random step.
     n_blocks: number of evaluation blocks of phase two.
     episodes_per_block / points_per_block: the length of a block (exactly one must be set).
     eval_episodes: greedy evaluation episodes per evaluation (learning off).

@@ -7,7 +7,11 @@ the environment declares:
 * the discount: gamma = 1 - 2 / T for the time limit T, within [0.9, 0.99] (a horizon of
   about half an episode, never beyond 100 steps);
 * a continuous action scaled like the observations: its [low, high] spans 1
-  (``action_scale = 1 / (high - low)``).
+  (``action_scale = 1 / (high - low)``), and explored in bursts (``RunConfig(exploration=
+  "bursts")``, ``hedger_jax.bursts``): a random action held for a heavy-tailed number of
+  steps. One random step of a continuous action barely moves the state; a discrete task's
+  random step already changes the action by a whole level, and bursts there hurt
+  (docs/classic-control.md).
 
 "Don't know" is worth 0 (``default_value`` in ``TASK``), the value of a future that brings
 nothing: optimistic where every step costs (the cars, the acrobot, the pendulum: untried
@@ -41,6 +45,7 @@ def task_settings(env: Any) -> Tuple[Dict[str, Any], Dict[str, Any]]:
     gamma = discount(env.max_steps)
     hedger["gamma"] = gamma
     space = env.action_space
-    if not space.is_discrete:
-        hedger["action_scale"] = 1.0 / float(space.high[0] - space.low[0])
-    return hedger, {}
+    if space.is_discrete:
+        return hedger, {}
+    hedger["action_scale"] = 1.0 / float(space.high[0] - space.low[0])
+    return hedger, {"exploration": "bursts"}

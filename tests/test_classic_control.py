@@ -22,13 +22,16 @@ def test_the_discount_follows_the_time_limit():
     ("MountainCarContinuous-v0", 0.99, 0.5)])
 def test_a_gymnasium_id_gets_the_task_settings(env_id, gamma, action_scale):
     """No arguments: the TASK preset, the discount from the time limit, a continuous action
-    spanning 1 in scaled units; the paper's preset is still one argument away."""
+    spanning 1 in scaled units and explored in bursts; the paper's preset is still one
+    argument away."""
     m = Hedger(env_id)
     cfg = m.config
     for k, v in presets.TASK.items():
         assert getattr(cfg, k) == v, k
+    explore = "random" if action_scale is None else "bursts"      # by the action space
     assert cfg.gamma == gamma and m.run_config == RunConfig(eval_episodes=20,
-                                                            eval_max_steps=m.env.max_steps)
+                                                            eval_max_steps=m.env.max_steps,
+                                                            exploration=explore)
     if action_scale is not None:
         assert cfg.input_scale[-1] == pytest.approx(action_scale)
     paper = Hedger(env_id, preset="paper").config
