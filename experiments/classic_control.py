@@ -1,7 +1,7 @@
 """HEDGER on Gymnasium's classic-control suite, against SB3's DQN / SAC on the same budgets.
 
 ``python -m experiments classic-control [--quick] [--seeds 0 1 2 3 4] [--tasks ID ...]
-[--methods hedger hedger-hand sb3] [--out DIR] [--docs DIR] [--summary-only]``
+[--methods hedger hedger-hand sb3] [--out DIR] [--docs DIR] [--summary-only] [--keep JSON]``
 
 For each task and seed (docs/classic-control.md has the protocol and the results):
 
@@ -18,7 +18,8 @@ episodes, and at the end on ``FINAL_EPISODES`` (the reported number). One JSON p
 written when it ends (atomically); a rerun skips those that exist. ``--quick`` runs the
 HEDGER methods on seeds 0 and 1 at a quarter of the budgets. The summary writes
 ``DIR/classic_control.md`` (the table), ``.json`` and ``.png`` (greedy return against env
-steps, 95 % bands), and copies them to ``--docs`` when given.
+steps, 95 % bands), and copies them to ``--docs`` when given; ``--keep`` an earlier
+``classic_control.json`` fills the cells with no runs on disk (rerun some rows, keep the rest).
 """
 from __future__ import annotations
 
@@ -316,9 +317,28 @@ def plot(summary: Dict[str, Dict[str, Dict[str, Any]]], path: str) -> None:
     plt.close(fig)
 
 
-def report(records: List[Dict[str, Any]], out: str, docs: Optional[str], quick: bool) -> str:
-    """Write the table, the summary JSON and the plot to ``out`` (and ``docs``) -> table."""
-    summary = summarize(records)
+def keep_rows(summary: Dict[str, Dict[str, Dict[str, Any]]], earlier_path: Optional[str]
+              ) -> Dict[str, Dict[str, Dict[str, Any]]]:
+    """``summary`` with each (task, method) it lacks taken from an earlier summary JSON
+    (``report``'s ``classic_control.json``), so that rerunning some rows keeps the others."""
+    if earlier_path is None:
+        return summary
+    with open(earlier_path) as f:
+        earlier = json.load(f)["summary"]
+    merged = {env_id: dict(rows) for env_id, rows in summary.items()}
+    for env_id, rows in earlier.items():
+        if env_id not in TASKS:
+            raise ValueError(f"--keep: {earlier_path} has an unknown task {env_id!r}")
+        for method, row in rows.items():
+            merged.setdefault(env_id, {}).setdefault(method, row)
+    return merged
+
+
+def report(records: List[Dict[str, Any]], out: str, docs: Optional[str], quick: bool,
+           keep: Optional[str] = None) -> str:
+    """Write the table, the summary JSON and the plot to ``out`` (and ``docs``) -> table.
+    ``keep``: an earlier summary JSON whose rows fill those without runs (``keep_rows``)."""
+    summary = keep_rows(summarize(records), keep)
     text = table(summary, quick)
     name = "classic_control_quick" if quick else "classic_control"
     for folder in filter(None, (out, docs)):
@@ -343,6 +363,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--docs", default=None)
     parser.add_argument("--summary-only", action="store_true",
                         help="run nothing: the table and plot of the runs on disk")
+    parser.add_argument("--keep", metavar="JSON", default=None,
+                        help="an earlier classic_control.json: its rows fill the table's "
+                             "(task, method) cells that have no runs on disk")
     args = parser.parse_args(argv)
     seeds = args.seeds or (list(QUICK_SEEDS) if args.quick else list(range(5)))
     methods = args.methods or (["hedger", "hedger-hand"] if args.quick else list(METHODS))
@@ -350,7 +373,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         records = load_records(args.out, args.quick)
     else:
         records = sweep(args.tasks, methods, seeds, args.out, args.quick)
-    print(report(records, args.out, args.docs, args.quick))
+    print(report(records, args.out, args.docs, args.quick, args.keep))
     return 0
 
 

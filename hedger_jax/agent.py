@@ -244,9 +244,10 @@ def training_act(config: HedgerConfig, run: RunConfig, memory: Memory, greedy_on
                  params: Optional[HedgerParams] = None):
     """The rollout's ``act(key, obs, act_state)`` of phase two: ``explore_action`` (reading,
     not carrying, the memory; under ``exploration="bursts"`` act_state is the episode's
-    ``Burst``, its start the attribute ``initial_state``), with the greedy searches' neighbour sets recorded for
-    ``train_prefix`` when neighbours are reused (``run.reuse_neighbours``, and only under
-    ``full_policy="error"``). params: ``HedgerParams``, or None for the configs' values."""
+    ``Burst``, its start the attribute ``initial_state``), with the greedy searches'
+    neighbour sets recorded for ``train_prefix`` when neighbours are reused
+    (``run.reuse_neighbours``, and only under ``full_policy="error"``). params:
+    ``HedgerParams``, or None for the configs' values."""
     params = with_data_bandwidth(config, memory, params)     # once per rollout
     reuse = run.reuse_neighbours
     if reuse is None:

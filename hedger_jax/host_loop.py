@@ -1,10 +1,10 @@
 """The host loop: ``Hedger`` on a Gymnasium env that is not one of the project's JAX envs.
 
 Episodes run on the host (``run_episode``): one jitted epsilon-greedy action per step
-(``explore_step``, through an episode's ``Explorer``), the episode's transitions in NumPy buffers (``EpisodeBuffer``), and after
-the episode a jitted reverse replay of the buffer padded to the episode cap
-(``replay_episode``: compiled once per config and cap) followed by the neighbour index's
-refresh. A transition's ``terminated`` is Gymnasium's ``terminated`` only: a truncation (the
+(``explore_step``, through an episode's ``Explorer``), the episode's transitions in NumPy
+buffers (``EpisodeBuffer``), and after the episode a jitted reverse replay of the buffer
+padded to the episode cap (``replay_episode``: compiled once per config and cap) followed by
+the neighbour index's refresh. A transition's ``terminated`` is Gymnasium's ``terminated`` only: a truncation (the
 env's or the cap's) ends the episode but is never a terminal state.
 
 The env is an ``environments.GymnasiumEnv`` (duck-typed here: ``gym_env``, ``gym_action``),
@@ -33,8 +33,8 @@ from hedger_jax.progress import Chunk
 from hedger_jax.train import Transition
 
 __all__ = ["Backups", "EpisodeBuffer", "EpisodeResult", "Explorer", "run_episode", "explore_step",
-           "greedy_step", "kernel_width", "Width", "replay_episode", "refresh", "seed_from_key", "episode_buffer",
-           "training_episodes", "evaluate_greedy"]
+           "greedy_step", "kernel_width", "Width", "replay_episode", "refresh", "seed_from_key",
+           "episode_buffer", "training_episodes", "evaluate_greedy"]
 
 
 # ------------------------------------------------------------------------------------------

@@ -1,5 +1,7 @@
 """Settings read from the task (``hedger_jax.task_settings``), phase 1 with a hand policy on
 a Gymnasium env, the hand policies themselves, and the classic-control experiment's pieces."""
+import json
+
 import gymnasium
 import numpy as np
 import pytest
@@ -113,6 +115,22 @@ def test_the_summary_s_intervals_and_table():
     text = classic_control.table(classic_control.summarize(recs), quick=False)
     assert "| Pendulum-v1 | 20,000 (5,000) | -200.0 ± 49.7 (3 seeds, 3 s) | not run |" in text
     assert text.count("\n") == 1 + len(classic_control.TASKS)
+
+
+def test_a_rerun_of_some_rows_keeps_the_others(tmp_path):
+    """``--keep``: the earlier summary fills only the (task, method) cells without runs."""
+    new = {"Pendulum-v1": {"hedger": {"mean": -150.0}}}
+    earlier = {"Pendulum-v1": {"hedger": {"mean": -500.0}, "sb3": {"mean": -140.0}},
+               "CartPole-v1": {"hedger": {"mean": 400.0}}}
+    path = tmp_path / "classic_control.json"
+    path.write_text(json.dumps({"summary": earlier}))
+    merged = classic_control.keep_rows(new, str(path))
+    assert merged == {"Pendulum-v1": {"hedger": {"mean": -150.0}, "sb3": {"mean": -140.0}},
+                      "CartPole-v1": {"hedger": {"mean": 400.0}}}
+    assert classic_control.keep_rows(new, None) is new
+    path.write_text(json.dumps({"summary": {"Nope-v0": {}}}))
+    with pytest.raises(ValueError, match="Nope-v0"):
+        classic_control.keep_rows(new, str(path))
 
 
 def test_a_run_logs_each_evaluation_as_it_goes():
