@@ -274,8 +274,11 @@ def summarize(records: List[Dict[str, Any]]) -> Dict[str, Dict[str, Dict[str, An
 def _cell(row: Optional[Dict[str, Any]]) -> str:
     if row is None:
         return "not run"
-    half = "" if not np.isfinite(row["half"]) else f" ± {row['half']:.1f}"
-    return f"{row['mean']:.1f}{half} ({len(row['seeds'])} seeds, {row['seconds']:.0f} s)"
+    # One seed has no interval (mean_ci's half-width 0 there is not a measurement).
+    one = len(row["seeds"]) < 2 or not np.isfinite(row["half"])
+    half = "" if one else f" ± {row['half']:.1f}"
+    seeds = "1 seed" if len(row["seeds"]) == 1 else f"{len(row['seeds'])} seeds"
+    return f"{row['mean']:.1f}{half} ({seeds}, {row['seconds']:.0f} s)"
 
 
 def table(summary: Dict[str, Dict[str, Dict[str, Any]]], quick: bool) -> str:

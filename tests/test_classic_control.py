@@ -115,6 +115,8 @@ def test_the_summary_s_intervals_and_table():
     text = classic_control.table(classic_control.summarize(recs), quick=False)
     assert "| Pendulum-v1 | 20,000 (5,000) | -200.0 ± 49.7 (3 seeds, 3 s) | not run |" in text
     assert text.count("\n") == 1 + len(classic_control.TASKS)
+    one = classic_control.table(classic_control.summarize(recs[:1]), quick=False)
+    assert "| -200.0 (1 seed, 3 s) |" in one                  # no interval from one seed
 
 
 def test_a_rerun_of_some_rows_keeps_the_others(tmp_path):
