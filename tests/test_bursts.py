@@ -151,3 +151,16 @@ def test_the_host_loop_holds_each_burst_for_its_length():
     lengths = np.asarray([int(b.left) + 1 for _, b in fresh])
     np.testing.assert_array_equal(buf.action[:ep.length], _held(acts, lengths, ep.length))
     assert lengths.max() >= 2
+
+
+@pytest.mark.full
+def test_bursts_take_the_continuous_car_to_the_goal():
+    """What bursts are for: ``Hedger("MountainCarContinuous-v0")`` with its defaults reaches
+    the goal and learns to (greedy return >= 90, the task's solved mark) within 30,000 steps on
+    the tuning seed 100 (its runs were solved between 10,000 and 30,000 steps); with one-step
+    epsilon-greedy no run reached the goal in 50,000 (docs/classic-control.md). About 95 s
+    on 2 cores."""
+    m = Hedger("MountainCarContinuous-v0", seed=100)
+    m.learn(30_000)
+    ev = m.evaluate(n_episodes=10)
+    assert ev["success_rate"] >= 0.9 and ev["mean_return"] >= 90, ev
