@@ -81,8 +81,9 @@ class Hedger:
       config: a ``HedgerConfig``; default ``HedgerConfig.for_env`` with the env's preset
         (``ENV_PRESETS``, ``hedger_jax.presets``: its ``hedger`` settings, then its
         ``state_scale_factors`` on the observation scaling).
-      run_config: a ``RunConfig`` (epsilon, exploration, evaluation protocol); default
-        ``RunConfig(**ENV_PRESETS[...]["run"])`` (for a host-loop env with
+      run_config: a ``RunConfig`` (epsilon, exploration, evaluation protocol), or a dict of
+        ``RunConfig`` fields that override the default, e.g. ``{"exploration": "random"}``;
+        default ``RunConfig(**ENV_PRESETS[...]["run"])`` (for a host-loop env with
         ``eval_episodes=HOST_EVAL_EPISODES`` and ``eval_max_steps`` the env's time limit).
       seed: the learner's PRNG seed (``jax.random.PRNGKey(seed)``).
       env_params: the env's params pytree (default ``env.default_params()`` with the preset's
@@ -107,7 +108,7 @@ class Hedger:
     """
 
     def __init__(self, env: Any, config: Optional[HedgerConfig] = None,
-                 run_config: Optional[RunConfig] = None, *, seed: int = 0,
+                 run_config: Union[RunConfig, Dict[str, Any], None] = None, *, seed: int = 0,
                  env_params: Any = None, env_kwargs: Optional[Dict[str, Any]] = None,
                  chunk_episodes: int = 10, preset: str = "auto", **overrides: Any):
         self.env_kwargs = dict(env_kwargs or {})

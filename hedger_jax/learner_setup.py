@@ -48,7 +48,7 @@ class Setup(NamedTuple):
 PRESETS = ("auto", "task", "paper")
 
 
-def build(env: Any, config: Optional[HedgerConfig], run_config: Optional[RunConfig], *,
+def build(env: Any, config: Optional[HedgerConfig], run_config: Any, *,
           seed: Any, env_params: Any, env_kwargs: Dict[str, Any], chunk_episodes: Any,
           overrides: Dict[str, Any], preset_name: str = "auto") -> Setup:
     """Resolve and check ``Hedger``'s arguments (see ``Hedger``) -> ``Setup``."""
@@ -62,6 +62,9 @@ def build(env: Any, config: Optional[HedgerConfig], run_config: Optional[RunConf
         settings = preset(None)
     task = preset_name == "task" or (preset_name == "auto" and host_loop
                                      and resolved.name not in ENV_PRESETS)
+    run_overrides = None
+    if isinstance(run_config, Mapping):          # overrides of the preset's run config
+        run_overrides, run_config = dict(run_config), None
     if task and (config is None or run_config is None):
         if not host_loop:
             raise ValueError("preset: 'task' reads its settings from a Gymnasium env run by "
@@ -86,7 +89,8 @@ def build(env: Any, config: Optional[HedgerConfig], run_config: Optional[RunConf
     else:
         config = _given_config(config, overrides)
     if run_config is None:
-        run_config = preset_run_config(env, settings, host_loop)
+        run = {**settings["run"], **(run_overrides or {})}
+        run_config = preset_run_config(env, {**settings, "run": run}, host_loop)
     if not isinstance(run_config, RunConfig):
         raise TypeError(f"run_config: expected a RunConfig, got {type(run_config).__name__}")
     if isinstance(seed, bool) or int(seed) != seed:

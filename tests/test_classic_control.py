@@ -43,6 +43,17 @@ def test_a_gymnasium_id_gets_the_task_settings(env_id, gamma, action_scale):
         Hedger(env_id, preset="nope")
 
 
+def test_a_dict_run_config_overrides_the_task_s_own():
+    """``run_config={...}`` changes those fields only: the task's evaluation protocol and
+    HEDGER settings stay (a whole ``RunConfig()`` would bring its own evaluation defaults)."""
+    m = Hedger("MountainCarContinuous-v0", run_config={"exploration": "random"}, capacity=64)
+    assert m.run_config == RunConfig(exploration="random", eval_episodes=20,
+                                      eval_max_steps=999)
+    assert m.config.backup_sweeps == presets.TASK["backup_sweeps"]
+    with pytest.raises(TypeError, match="nope"):
+        Hedger("MountainCarContinuous-v0", run_config={"nope": 1}, capacity=64)
+
+
 def test_the_jax_envs_keep_the_paper_s_presets():
     cfg = Hedger("HedgerMountainCar-v0").config
     assert cfg.backup_sweeps == 0 and cfg.gamma == presets.MOUNTAIN_CAR["gamma"]
