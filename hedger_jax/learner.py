@@ -81,10 +81,9 @@ class Hedger:
       config: a ``HedgerConfig``; default ``HedgerConfig.for_env`` with the env's preset
         (``ENV_PRESETS``, ``hedger_jax.presets``: its ``hedger`` settings, then its
         ``state_scale_factors`` on the observation scaling).
-      run_config: a ``RunConfig`` (epsilon, exploration, evaluation protocol), or a dict of
-        ``RunConfig`` fields that override the default, e.g. ``{"exploration": "random"}``;
-        default ``RunConfig(**ENV_PRESETS[...]["run"])`` (for a host-loop env with
-        ``eval_episodes=HOST_EVAL_EPISODES`` and ``eval_max_steps`` the env's time limit).
+      run_config: a ``RunConfig``, or a dict of fields overriding the default (e.g.
+        ``{"exploration": "random"}``); default ``RunConfig(**ENV_PRESETS[...]["run"])``
+        (a host-loop env: ``eval_episodes=HOST_EVAL_EPISODES``, ``eval_max_steps`` its limit).
       seed: the learner's PRNG seed (``jax.random.PRNGKey(seed)``).
       env_params: the env's params pytree (default ``env.default_params()`` with the preset's
         ``env_params`` overrides; none for a host-loop env).
