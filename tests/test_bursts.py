@@ -16,13 +16,11 @@ from hedger_jax.greedy import greedy_action, greedy_action_from_uniform, greedy_
 from hedger_jax.learner import Hedger
 from hedger_jax.memory import add_points, init_memory
 
-ENV = MountainCar(continuous=True)
-CFG = HedgerConfig.for_env(ENV, capacity=256, bandwidth=0.1)
 #: Holding is the same for any action; a discrete set's greedy search compiles in a moment.
 DISCRETE = HedgerConfig.for_env(MountainCar(continuous=False), capacity=256, bandwidth=0.1)
 
 
-def _memory(cfg=CFG, n=200, seed=0):
+def _memory(cfg, n=200, seed=0):
     """A memory of n random mountain-car points with values in [0, 1]."""
     r = np.random.default_rng(seed)
     s = r.uniform([-1.2, -0.07], [0.6, 0.07], (n, 2)).astype(np.float32)
@@ -71,20 +69,22 @@ def _step_keys(key, n):
 
 def test_a_jitted_rollout_holds_each_burst_for_its_length():
     """epsilon = 1: every fresh step explores, so its draw depends on its key alone; the
-    rollout's actions equal the NumPy holding of those draws; bursts of 2+ steps occur."""
+    rollout's actions equal the NumPy holding of those draws; bursts of 2+ steps occur.
+    (Discrete actions, cheap to compile; the host-loop test below holds continuous ones.)"""
     run = RunConfig(exploration="bursts", epsilon=1.0, reuse_neighbours=False)
-    mem = _memory()
-    params = ENV.default_params()
+    env, cfg = MountainCar(continuous=False), DISCRETE
+    mem = _memory(cfg)
+    params = env.default_params()
     key = jax.random.PRNGKey(5)
-    obs0, s0 = ENV.reset(jax.random.PRNGKey(1), params)
+    obs0, s0 = env.reset(jax.random.PRNGKey(1), params)
 
     @jax.jit
     def episode(key):
-        return rollout(ENV, params, training_act(CFG, run, mem), key, 120, obs0, s0)
+        return rollout(env, params, training_act(cfg, run, mem), key, 120, obs0, s0)
 
     buf, length = episode(key)
     length = int(length)
-    acts, lengths = _fresh(CFG, run, mem, jnp.zeros((length, 2)) + obs0,
+    acts, lengths = _fresh(cfg, run, mem, jnp.zeros((length, 2)) + obs0,
                            _step_keys(key, length))
     np.testing.assert_array_equal(np.asarray(buf.action)[:length], _held(acts, lengths, length))
     assert lengths.max() >= 2 and lengths.min() == 1
